@@ -1,0 +1,39 @@
+"""Argument parsing shared by the ``rve``, ``obu`` and ``captures`` commands.
+
+A bad flag must give one line and a non-zero exit, not argparse's usage block, so
+:class:`Parser` raises :class:`UsageError` and :func:`dispatch` prints it.  This is the
+only module of ``catc`` that writes anything (one line to stderr, for the commands).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+class UsageError(Exception):
+    """A bad command line; ``str()`` is the one-line message."""
+
+
+class Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # type: ignore[override]
+        raise UsageError(f"{self.prog}: {message} (see {self.prog} --help)")
+
+
+def make_parser(prog: str, description: str) -> tuple[Parser, argparse._SubParsersAction]:
+    """A top-level parser with required subcommands that share :class:`Parser`."""
+    parser = Parser(prog=prog, description=description,
+                    formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True,
+                                parser_class=Parser)
+    return parser, sub
+
+
+def dispatch(parser: Parser, argv: list[str] | None) -> int:
+    """Parse ``argv`` and run the chosen subcommand's ``func``; exit status 2 on bad usage."""
+    try:
+        args = parser.parse_args(argv)
+    except UsageError as err:
+        print(err, file=sys.stderr)
+        return 2
+    return args.func(args)

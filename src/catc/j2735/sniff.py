@@ -1,0 +1,178 @@
+"""Find the J2735 frames in a capture file of unknown format (for ``captures decode FILE``).
+
+Binary input is, in this order of trial: an IEEE 1609.2 ``Ieee1609Dot2Data``
+(:mod:`catc.j2735.ieee1609`), an OBU log (:mod:`catc.j2735.obulog`), else raw UPER (a
+MessageFrame, or a bare BasicSafetyMessage such as the ODE's ``bsm.uper``) which the
+UPER decoder judges later; its first octet must be below 0x80 (a MessageFrame's
+messageId starts with zero bits, a bare BSM with a clear extension bit).
+
+Text input is one of:
+
+- hex: one frame per line, or one blob spread over several lines.  Each blob is
+  unpacked like binary input, so hex of a 1609.2 record or of an OBU log record
+  works too (the ODE's ``BsmReceiverTest_ValidBSM.txt`` is a whole bsmTx log record:
+  26-octet header, then 1609.2, then the frame);
+- ODE JSON (one object, an array, or JSON lines): the hex in ``payload.data.bytes``,
+  else in ``metadata.asn1``.  Records with decoded values only give no frames;
+- ODE XML (``OdeAsn1Data``): the hex in ``<bytes>`` elements, else in ``<asn1>``.
+
+Each frame comes back as an :class:`Extracted` whose ``container`` names the file's
+outer format and whose ``meta`` holds ``index`` (frame number in the file),
+``layers`` (outermost first), the position in the file (``line`` or ``record``) and
+whatever the containers said (OBU log header fields, 1609.2 security and psid).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+from catc.errors import DecodeError
+from catc.j2735 import ieee1609, obulog
+
+ACCEPTED = (
+    "expected raw UPER, hex text, IEEE 1609.2 COER, an OBU .bin log, "
+    "or ODE JSON/XML records carrying hex"
+)
+_HEX = re.compile(r"[0-9A-Fa-f\s]+")
+_CONTROL = re.compile(r"[\x00-\x08\x0b\x0c\x0e-\x1f]")
+_ODE_JSON_KEYS = {"metadata", "payload", "coreData"}
+_ODE_XML = re.compile(r"<(OdeAsn1Data|MessageFrame|BasicSafetyMessage)\b")
+_XML_HEX = {tag: re.compile(rf"<{tag}>([^<]*)</{tag}>") for tag in ("bytes", "asn1")}
+
+
+@dataclass(frozen=True)
+class Extracted:
+    """One frame found in a file, with the container it came in."""
+
+    frame: bytes
+    container: str  # "uper" | "hex" | "ieee1609" | "obulog" | "ode-json" | "ode-xml"
+    meta: dict[str, Any] = field(default_factory=dict)
+
+
+def _security(u: ieee1609.Unwrapped) -> dict[str, Any]:
+    return {"security": u.security, "psid": u.psid, "generation_time_us": u.generation_time_us}
+
+
+def _unpack(blob: bytes) -> list[tuple[bytes, dict[str, Any]]]:
+    """The frames in one binary blob, each with what its containers said."""
+    if ieee1609.looks_like_1609(blob):
+        try:
+            u = ieee1609.unwrap(blob)
+        except DecodeError:
+            pass  # a bare BSM may start 03 8x as well; try the other readings
+        else:
+            return [(u.frame, {"layers": ["ieee1609"], **_security(u)})]
+    if obulog.looks_like_obulog(blob):
+        frames = []
+        for i, rec in enumerate(obulog.iter_records(blob)):
+            meta = {k: v for k, v in asdict(rec).items() if k not in ("payload", "frame")}
+            meta.update(layers=["obulog"], record=i)
+            if ieee1609.looks_like_1609(rec.payload):
+                meta.update(
+                    layers=["obulog", "ieee1609"], **_security(ieee1609.unwrap(rec.payload))
+                )
+            frames.append((rec.frame, meta))
+        return frames
+    if blob and blob[0] < 0x80:
+        return [(blob, {"layers": ["uper"]})]
+    raise DecodeError("garbage", f"unrecognised binary input; {ACCEPTED}")
+
+
+def _hex(text: str, where: str) -> bytes:
+    digits = "".join(text.split())
+    if not digits or not _HEX.fullmatch(digits) or len(digits) % 2:
+        raise DecodeError("garbage", f"{where}: not an even number of hex digits")
+    return bytes.fromhex(digits)
+
+
+def _starts_frame(blob: bytes) -> bool:
+    return blob[:1] == b"\x00" or ieee1609.looks_like_1609(blob) or obulog.looks_like_obulog(blob)
+
+
+def _from_hex(text: str) -> list[tuple[bytes, dict[str, Any]]]:
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    if len(lines) > 1 and all(len("".join(line.split())) % 2 == 0 for line in lines):
+        blobs = [_hex(line, f"hex line {n}") for n, line in enumerate(lines)]
+        if all(_starts_frame(b) for b in blobs):
+            return [(f, {**m, "line": n}) for n, b in enumerate(blobs) for f, m in _unpack(b)]
+    return _unpack(_hex(text, "hex text"))
+
+
+def _json_records(text: str) -> list[Any]:
+    try:
+        doc = json.loads(text)
+        return doc if isinstance(doc, list) else [doc]
+    except (ValueError, RecursionError):
+        pass
+    try:
+        return [json.loads(line) for line in text.splitlines() if line.strip()]
+    except (ValueError, RecursionError):
+        raise DecodeError("garbage", f"text is not valid JSON or JSON lines; {ACCEPTED}") from None
+
+
+def _get(obj: Any, *keys: str) -> Any:
+    for key in keys:
+        obj = obj.get(key) if isinstance(obj, dict) else None
+    return obj
+
+
+def _from_json(text: str) -> list[tuple[bytes, dict[str, Any]]]:
+    frames = []
+    for n, rec in enumerate(_json_records(text)):
+        if not isinstance(rec, dict) or not _ODE_JSON_KEYS & rec.keys():
+            raise DecodeError("garbage", f"JSON record {n} is not an ODE record; {ACCEPTED}")
+        for path in (("payload", "data", "bytes"), ("metadata", "asn1")):
+            value = _get(rec, *path)
+            if isinstance(value, str) and value.strip():
+                where = f"JSON record {n} {'.'.join(path)}"
+                for f, m in _unpack(_hex(value, where)):
+                    frames.append((f, {**m, "line": n, "field": ".".join(path)}))
+                break
+    return frames
+
+
+def _from_xml(text: str) -> list[tuple[bytes, dict[str, Any]]]:
+    if not _ODE_XML.search(text):
+        raise DecodeError("garbage", f"XML is not an ODE record; {ACCEPTED}")
+    for tag, pattern in _XML_HEX.items():
+        found = pattern.findall(text)
+        if found:
+            return [
+                (f, {**m, "element": tag})
+                for value in found
+                for f, m in _unpack(_hex(value, f"XML <{tag}>"))
+            ]
+    return []
+
+
+def _as_text(data: bytes) -> str | None:
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        return None
+    return None if _CONTROL.search(text) else text
+
+
+def extract_frames(data: bytes) -> list[Extracted]:
+    """The frames in a capture file's content, detecting its format (see module doc)."""
+    text = _as_text(data)
+    if text is None:
+        found, container = _unpack(bytes(data)), None
+    else:
+        text = text.strip()
+        if text[:1] in ("{", "["):
+            found, container = _from_json(text), "ode-json"
+        elif text[:1] == "<":
+            found, container = _from_xml(text), "ode-xml"
+        elif text and _HEX.fullmatch(text):
+            found, container = _from_hex(text), "hex"
+        else:
+            raise DecodeError("garbage", f"unrecognised text input; {ACCEPTED}")
+    extracted = []
+    for i, (frame, meta) in enumerate(found):
+        layers = [container, *meta["layers"]] if container else meta["layers"]
+        extracted.append(Extracted(frame, layers[0], {**meta, "layers": layers, "index": i}))
+    return extracted

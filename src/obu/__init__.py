@@ -1,0 +1,1 @@
+"""obu package."""

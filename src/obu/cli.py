@@ -1,0 +1,64 @@
+"""``obu``: the On-Board Unit, the device under test.
+
+The receiving daemon (``obu run``) arrives with its own issue; today the command
+offers the receive-side decoder on a single frame, for frames copied from a
+capture tool.
+"""
+
+from __future__ import annotations
+
+import argparse
+import binascii
+import json
+import sys
+
+from catc.cliargs import dispatch, make_parser
+from catc.errors import DecodeError
+from catc.j2735 import decode_frame
+from catc.j2735.ieee1609 import looks_like_1609, unwrap
+from catc.records import bsm_to_record
+
+DESCRIPTION = """\
+On-Board Unit: receives BSM frames and runs the CA-TC and the safety applications.
+
+  frame    decode one frame given in hex, as the OBU's receive path does"""
+
+FRAME_HELP = """\
+Decode one frame given in hex (spaces and colons allowed), as the OBU's receive path
+does: an IEEE 1609.2 envelope is removed when present, then the UPER MessageFrame is
+decoded.  Prints the whole BSM as one JSON object.  An undecodable frame prints its
+reason (truncated, garbage, wrong-message-id, out-of-range, unsupported) and exits 1."""
+
+
+def _frame(args: argparse.Namespace) -> int:
+    text = "".join(args.hex).replace(":", "").replace(" ", "")
+    try:
+        data = binascii.unhexlify(text)
+    except (binascii.Error, ValueError):
+        print("obu frame: not a hex string", file=sys.stderr)
+        return 2
+    try:
+        security = None
+        if looks_like_1609(data):
+            unwrapped = unwrap(data)
+            data, security = unwrapped.frame, unwrapped.security
+        record = bsm_to_record(decode_frame(data), full=True)
+    except DecodeError as err:
+        print(f"obu frame: {err}", file=sys.stderr)
+        return 1
+    record["ieee1609"] = security
+    print(json.dumps(record, indent=2))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser, sub = make_parser("obu", DESCRIPTION)
+    p = sub.add_parser("frame", help="decode one hex frame", description=FRAME_HELP,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("hex", nargs="+", metavar="HEX")
+    p.set_defaults(func=_frame)
+    return dispatch(parser, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

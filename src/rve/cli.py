@@ -1,0 +1,63 @@
+"""``rve``: the Remote Vehicle Emulator.
+
+The replay daemon (``rve run``) arrives with its own issue; today the command
+offers the encoder that the daemon will use, on its own.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from catc.cliargs import dispatch, make_parser
+from catc.errors import EncodeError
+from catc.j2735 import encode_frame
+from catc.j2735.ieee1609 import wrap_unsecured
+from catc.records import KEYS, bsm_from_record
+
+DESCRIPTION = """\
+Remote Vehicle Emulator: replays mobility logs as SAE J2735 BSM frames.
+
+  encode   turn BSM records (JSON lines) into UPER MessageFrames"""
+
+ENCODE_HELP = f"""\
+Read one BSM record per line (JSON with the keys {", ".join(KEYS)};
+SI units and degrees, null or a missing key = unavailable, "id" = 8 hex digits)
+and write the UPER MessageFrame of each: one hex line each, or with --binary the
+raw frames back to back.  This is the inverse of `captures decode`."""
+
+
+def _encode(args: argparse.Namespace) -> int:
+    out = sys.stdout.buffer
+    for lineno, line in enumerate(args.input, 1):
+        if not line.strip():
+            continue
+        try:
+            frame = encode_frame(bsm_from_record(json.loads(line)))
+        except (ValueError, EncodeError) as err:  # JSONDecodeError is a ValueError
+            print(f"rve encode: line {lineno}: {err}", file=sys.stderr)
+            return 1
+        if args.ieee1609:
+            frame = wrap_unsecured(frame)
+        out.write(frame if args.binary else frame.hex().upper().encode() + b"\n")
+    out.flush()
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser, sub = make_parser("rve", DESCRIPTION)
+    p = sub.add_parser("encode", help="BSM records (JSON lines) to UPER frames",
+                       description=ENCODE_HELP,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("input", nargs="?", type=argparse.FileType("r"), default=sys.stdin,
+                   metavar="FILE", help="JSON lines (default: standard input)")
+    p.add_argument("--binary", action="store_true", help="write raw frames instead of hex lines")
+    p.add_argument("--ieee1609", action="store_true",
+                   help="wrap each frame in an unsecured IEEE 1609.2 envelope")
+    p.set_defaults(func=_encode)
+    return dispatch(parser, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

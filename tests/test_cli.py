@@ -1,0 +1,104 @@
+"""The command-line tools as a user runs them: separate processes, exit codes, output."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from catc.records import KEYS
+from tests.conftest import shared_path
+
+VEC = "jpo-ode-bsm-vectors"
+
+
+def run(module: str, *args: str, stdin: bytes | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", module, *args], input=stdin,
+                          capture_output=True, timeout=120, check=False)
+
+
+@pytest.mark.parametrize(("module", "command"), [("captures.cli", "decode"),
+                                                 ("rve.cli", "encode"), ("obu.cli", "frame")])
+def test_help_lists_subcommands(module, command):
+    out = run(module, "--help")
+    assert out.returncode == 0
+    assert command in out.stdout.decode()
+    sub = run(module, command, "--help")
+    assert sub.returncode == 0 and len(sub.stdout.decode().splitlines()) > 5
+
+
+@pytest.mark.parametrize("module", ["captures.cli", "rve.cli", "obu.cli"])
+def test_bad_flag_is_one_line_and_exit_2(module):
+    out = run(module, "--no-such-flag")
+    assert out.returncode == 2
+    assert len(out.stderr.decode().strip().splitlines()) == 1
+    assert out.stdout == b""
+
+
+def test_decode_obu_log_prints_every_bsm_with_the_contract_keys():
+    out = run("captures.cli", "decode", str(shared_path(VEC, "bsmLogDuringEvent.bin")))
+    assert out.returncode == 0, out.stderr
+    records = [json.loads(line) for line in out.stdout.decode().splitlines()]
+    assert len(records) == 222
+    assert all(tuple(r) == KEYS for r in records)
+    first = records[0]
+    assert (first["msgCnt"], first["id"]) == (81, "31325433")
+    assert 40.5 < first["lat"] < 40.6 and -105.1 < first["lon"] < -105.0
+
+
+@pytest.mark.parametrize(("name", "code", "count"), [
+    ("rxMsg_BSM.bin", 1, 227),            # one TravelerInformation frame is reported
+    ("bsm.uper", 0, 1),                   # bare BSM, zero padded
+    ("decoder-input-bsm.json", 0, 1),     # signed IEEE 1609.2 inside an ODE record
+    ("BsmReceiverTest_ValidBSM.txt", 0, 1),
+    ("bsm_uper1.hex", 1, 0),              # truncated frame
+])
+def test_decode_each_kind_of_file(name, code, count):
+    out = run("captures.cli", "decode", "--full", str(shared_path(VEC, name)))
+    assert out.returncode == code, out.stderr
+    assert len(out.stdout.decode().splitlines()) == count
+    if code:
+        assert out.stderr.decode().count("\n") == 1
+
+
+def test_decode_garbage_and_missing_files(tmp_path):
+    junk = tmp_path / "junk.bin"
+    junk.write_bytes(bytes(range(200, 256)) * 3)
+    for path in (junk, tmp_path / "missing.uper"):
+        out = run("captures.cli", "decode", str(path))
+        assert out.returncode == 2
+        assert len(out.stderr.decode().strip().splitlines()) == 1
+
+
+def test_rve_encode_then_captures_decode_round_trips(tmp_path):
+    records = [{"msgCnt": i, "id": "C0FFEE01", "secMark": 1000 * i,
+                "lat": round(28.6024 + 1e-5 * i, 7), "lon": -81.2001, "elev": 30.0,
+                "speed": 25.0, "heading": 90.0,
+                "accel_long": -3.5, "accel_lat": 0.0, "accel_vert": None, "yaw_rate": 0.0,
+                "width": 1.8, "length": 4.6} for i in range(5)]
+    src = "\n".join(json.dumps(r) for r in records).encode()
+    enc = run("rve.cli", "encode", "--ieee1609", stdin=src)
+    assert enc.returncode == 0, enc.stderr
+    hex_file = tmp_path / "frames.hex"
+    hex_file.write_bytes(enc.stdout)
+    dec = run("captures.cli", "decode", str(hex_file))
+    assert dec.returncode == 0, dec.stderr
+    assert [json.loads(line) for line in dec.stdout.decode().splitlines()] == records
+
+
+def test_rve_encode_bad_record_names_the_line():
+    out = run("rve.cli", "encode", stdin=b'{"id": "00000001", "lat": 1}\n{"lat": 2}\n')
+    assert out.returncode == 1
+    assert out.stderr.decode().startswith("rve encode: line 2:")
+
+
+def test_obu_frame_decodes_signed_1609_and_rejects_other_messages():
+    record = json.loads(shared_path(VEC, "decoder-input-bsm.json").read_text())
+    out = run("obu.cli", "frame", record["payload"]["data"]["bytes"])
+    assert out.returncode == 0, out.stderr
+    assert json.loads(out.stdout)["ieee1609"] == "signed"
+    tim = run("obu.cli", "frame", "001F0300")
+    assert tim.returncode == 1 and b"wrong-message-id" in tim.stderr
+    assert run("obu.cli", "frame", "zz").returncode == 2

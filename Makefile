@@ -6,7 +6,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 SHARED ?= ../shared/data
 
-.PHONY: demo test lint bench clean install
+.PHONY: demo test lint bench bank clean install
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -28,10 +28,22 @@ demo: $(VENV)/.installed
 
 test: $(VENV)/.installed-test
 	$(BIN)/ruff check src tests bench
-	$(BIN)/python -m pytest
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest
 
 bench: $(VENV)/.installed
 	$(BIN)/python bench/codec.py
+
+# Re-create the default HGP kernel bank shipped in the package from ../shared/data.
+bank: $(VENV)/.installed
+	$(BIN)/captures train-bank \
+	  --dataset $(SHARED)/openacc-zalazone/short_setting_dynamic_part1.csv \
+	  --dataset $(SHARED)/openacc-zalazone/short_setting_dynamic_part22.csv \
+	  --dataset $(SHARED)/openacc-zalazone/long_setting_dynamic_part16.csv \
+	  --dataset $(SHARED)/openacc-zalazone/mixed_dynamic_part7.csv \
+	  --dataset ngsim:$(SHARED)/ngsim-i80-pairs \
+	  --holdout $(SHARED)/openacc-zalazone/short_setting_handling_part36.csv \
+	  --holdout $(SHARED)/openacc-zalazone/no_ACC_handling_part40.csv \
+	  --out src/catc/predict/default_bank.json
 
 clean:
 	rm -rf $(VENV) build *.egg-info src/*.egg-info .pytest_cache

@@ -1,0 +1,134 @@
+"""HGP formulation choices, measured: PTE95 of HGP variants next to the kinematic baselines.
+
+Each variant changes one thing from the shipped configuration (``HgpConfig()`` and the
+shipped kernel bank).  Every variant and baseline sees the same seeded Bernoulli loss on
+every vehicle of every trip (``catc.evaluate``).  This is the script behind the
+formulation notes in ``src/catc/predict/hgp.py`` and docs/hgp.md.
+
+    python bench/hgp_ablation.py [--json] [--per 90,95] [--workers 2] [--variants a,b]
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse
+import json
+import sys
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from captures.datasets import load
+from catc.channel import bernoulli_received
+from catc.evaluate import replay_track
+from catc.predict import gp, make_predictor
+from catc.predict.bank import KernelBank
+from catc.predict.hgp import HgpConfig, HgpPredictor
+from catc.predict.training import series
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+DATASETS = {"openacc": str(DATA / "openacc-zalazone"),
+            "ngsim": "ngsim:" + str(DATA / "ngsim-i80-pairs")}
+BASE = HgpConfig()
+
+#: name -> (description, HgpConfig overrides, bank: "default" or "loo")
+VARIANTS: dict[str, tuple[str, dict, str]] = {
+    "hgp": ("shipped configuration", {}, "default"),
+    "paper": ("no slopes, select on values only (the paper's HGP)",
+              {"slopes": False, "select_with_slopes": False}, "default"),
+    "no-select-slopes": ("slopes in the forecast, selection on values only",
+                         {"select_with_slopes": False}, "default"),
+    "loo-bank": ("bank = k-means of LOO fits on 300 random windows, not Algorithm 1", {},
+                 "loo"),
+    "online": ("online models on (backtest 1 s, PTE_th 0.5 m)", {"online": True}, "default"),
+    "no-damping": ("E[cos h] without exp(-σh²/2)", {"heading_damping": False}, "default"),
+    "no-switching": ("no plausibility switching (negative speed still stops)",
+                     {"accel_max": 1e9, "yaw_rate_max": 1e9, "lat_accel_max": 1e9,
+                      "speed_std_max": 1e9, "heading_std_max": 1e9}, "default"),
+    "left-rule": ("the paper's left Riemann recursion", {"integration": "left"}, "default"),
+    "window-10s": ("window also capped at 10 s", {"window_s": 10.0}, "default"),
+    "window-30s": ("window also capped at 30 s", {"window_s": 30.0}, "default"),
+    "accel-sd-0.14": ("BSM acceleration σ 0.14 m/s² (shipped 0.07)", {"noise_accel": 0.02},
+                      "default"),
+    "accel-sd-0.28": ("BSM acceleration σ 0.28 m/s²", {"noise_accel": 0.08}, "default"),
+    "yaw-sd-0.18": ("BSM yaw rate σ 0.18 deg/s (shipped 0.31)", {"noise_yaw": 1e-5},
+                    "default"),
+    "yaw-sd-0.57": ("BSM yaw rate σ 0.57 deg/s", {"noise_yaw": 1e-4}, "default"),
+}
+BASELINES = ("ca", "kf", "ctrv")
+
+
+def loo_bank(tables, count: int = 300, seed: int = 0) -> KernelBank:
+    """k-means(16) of LOO fits on random 3 s windows: a bank without Algorithm 1."""
+    from catc.predict.training import cluster
+
+    rng = np.random.default_rng(seed)
+    tracks = [tr for t in tables for tr in t.tracks.values() if len(tr) >= 40]
+    speed, heading = [], []
+    for _ in range(count):
+        tr = tracks[rng.integers(len(tracks))]
+        c = int(rng.integers(29, len(tr)))
+        t, s, h, *_ = series(tr)
+        w = slice(c - 29, c + 1)
+        tau = t[w] - t[c]
+        speed.append(gp.fit(tau, s[w] - s[c], BASE.noise_speed, np.array([2.0, 1.0, 0.1]),
+                            BASE.speed_bounds).theta)
+        heading.append(gp.fit(tau, h[w] - h[c], BASE.noise_heading,
+                              np.array([2.0, 0.1, 0.01]), BASE.heading_bounds).theta)
+    return cluster(KernelBank(np.array(speed), np.array(heading)), 16)
+
+
+def pte95(job: tuple[str, str, float]) -> tuple[str, str, float, float]:
+    dataset, name, per = job
+    tables = load(DATASETS[dataset])
+    if name in BASELINES:
+        predictor = make_predictor(name)
+    else:
+        _, overrides, bank = VARIANTS[name]
+        loo = (loo_bank([t for spec in DATASETS.values() for t in load(spec)])
+               if bank == "loo" else None)
+        predictor = HgpPredictor(bank=loo, config=replace(BASE, **overrides))
+    errors = [replay_track(tr, predictor,
+                           bernoulli_received(0, f"{t.name}/{tr.vehicle_id}", len(tr), per))
+              for t in tables for tr in t.tracks.values()]
+    e = np.concatenate(errors)
+    return dataset, name, per, float(np.percentile(e[~np.isnan(e)], 95))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--json", action="store_true")
+    ap.add_argument("--per", default="90,95", help="PER list in %% (default 90,95)")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--variants", default=",".join(VARIANTS),
+                    help="comma-separated variant names (default all)")
+    args = ap.parse_args()
+    if not (DATA / "openacc-zalazone").is_dir():
+        print(f"no shared data at {DATA}", file=sys.stderr)
+        return 2
+    pers = [float(p) / 100 for p in args.per.split(",")]
+    names = [*BASELINES, *args.variants.split(",")]
+    jobs = [(d, n, p) for d in DATASETS for n in names for p in pers]
+    with ProcessPoolExecutor(args.workers) as pool:
+        results = list(pool.map(pte95, jobs))
+    table = {(d, n, p): v for d, n, p, v in results}
+    if args.json:
+        print(json.dumps([{"dataset": d, "variant": n, "per": p * 100, "pte95_m": v}
+                          for d, n, p, v in results], indent=1))
+        return 0
+    cols = [(d, p) for d in DATASETS for p in pers]
+    print(f"{'PTE95 [m]':<18}" + "".join(f"{d[:7]} {p * 100:g}%".rjust(14) for d, p in cols)
+          + "   change")
+    for n in names:
+        print(f"{n:<18}" + "".join(f"{table[d, n, p]:>14.3f}" for d, p in cols)
+              + ("   " + VARIANTS[n][0] if n in VARIANTS else "   baseline"))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,52 @@
+"""Dataset specs on the command line (DESIGN.md): ``PATH`` (kind detected from the content)
+or ``KIND:PATH``.  A directory means every file in it that parses.  This is the one place
+that reads dataset files; the parsers in :mod:`catc.datasets` work on text.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from catc.datasets import KINDS, detect_kind, parse
+from catc.mobility import MobilityTable
+
+
+class DatasetError(ValueError):
+    """A dataset spec that cannot be loaded; ``str()`` is a one-line message."""
+
+
+def _split(spec: str) -> tuple[str | None, Path]:
+    kind, sep, rest = spec.partition(":")
+    if sep and kind in KINDS:
+        return kind, Path(rest)
+    return None, Path(spec)
+
+
+def load(spec: str) -> list[MobilityTable]:
+    """Every trip in ``spec`` (a file, a directory of files, optionally ``KIND:`` first)."""
+    kind, path = _split(spec)
+    if not path.exists():
+        raise DatasetError(f"dataset {spec!r}: no such file or directory")
+    files = sorted(p for p in path.iterdir() if p.is_file()) if path.is_dir() else [path]
+    tables: list[MobilityTable] = []
+    for f in files:
+        try:
+            text = f.read_text()
+        except (OSError, UnicodeDecodeError):
+            if path.is_dir():
+                continue
+            raise DatasetError(f"dataset {f}: not a readable text file") from None
+        detected = detect_kind(text)
+        if path.is_dir() and (detected is None or kind not in (None, detected)):
+            continue  # READMEs, provenance notes, files of another kind
+        k = kind or detected
+        if k is None:
+            raise DatasetError(f"dataset {f}: unknown format; name it as KIND:PATH with KIND "
+                               f"in {', '.join(KINDS)}")
+        try:
+            tables.extend(parse(k, text, f.stem))
+        except ValueError as err:
+            raise DatasetError(f"dataset {f}: {err}") from None
+    if not tables:
+        raise DatasetError(f"dataset {spec!r}: no trips found")
+    return tables

@@ -1,0 +1,190 @@
+"""The HGP predictor: slope-conditioned posterior, integration, hybrid switching, protocol."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from catc.predict import gp
+from catc.predict.bank import KernelBank
+from catc.predict.base import Observation
+from catc.predict.hgp import (
+    HgpConfig,
+    HgpDirectPredictor,
+    HgpPredictor,
+    integrate,
+    posterior_with_slope,
+)
+
+BANK = KernelBank(np.array([[3.0, 1.0, 0.5], [1.0, 0.3, 0.05]]),
+                  np.array([[3.0, 0.05, 0.05], [1.0, 0.02, 0.01]]))
+NO_SWITCH = dict(accel_max=1e9, yaw_rate_max=1e9, lat_accel_max=1e9, speed_std_max=1e9,
+                 heading_std_max=1e9)
+
+
+def drive(n: int, v0: float = 15.0, a: float = 0.0, yaw: float = 0.0, dt: float = 0.1,
+          heading0: float = 90.0) -> list[Observation]:
+    """Exact samples of a vehicle with constant acceleration and yaw rate (deg/s, cw)."""
+    out, x, y, v, h = [], 0.0, 0.0, v0, heading0
+    for k in range(n):
+        out.append(Observation(k * dt, x, y, v, h % 360.0, a, yaw))
+        sub = 100
+        for _ in range(sub):  # fine Euler integration of the truth
+            x += v * math.sin(math.radians(h)) * dt / sub
+            y += v * math.cos(math.radians(h)) * dt / sub
+            v = max(0.0, v + a * dt / sub)
+            h += yaw * dt / sub
+    return out
+
+
+def test_slope_posterior_equals_brute_force_conditioning():
+    """Build the joint covariance of (f(τ_i), f′(0), f(t*)) by finite differences of κ and
+    condition numerically; the closed form must agree."""
+    rng = np.random.default_rng(0)
+    theta = np.array([1.7, 0.8, 0.3])
+    tau = -np.sort(rng.uniform(0, 3, 12))[::-1]
+    tau[-1] = 0.0
+    y = rng.normal(size=12)
+    grid = np.linspace(0, 3, 7)
+    h = 1e-4
+
+    def k(a, b):
+        return gp.kernel(np.atleast_1d(a), np.atleast_1d(b), theta)
+
+    kfd = lambda t: (k(t, h) - k(t, -h))[:, 0] / (2 * h)  # noqa: E731
+    kdd = float((k(h, h) - k(h, -h) - k(-h, h) + k(-h, -h))[0, 0] / (4 * h * h))
+    noise, slope, slope_var = 1e-3, 0.4, 1e-2
+    n = len(tau)
+    K = np.zeros((n + 1, n + 1))
+    K[:n, :n] = k(tau, tau) + noise * np.eye(n)
+    K[:n, n] = K[n, :n] = kfd(tau)
+    K[n, n] = kdd + slope_var
+    Ks = np.vstack([k(tau, grid), kfd(grid)])
+    mean = Ks.T @ np.linalg.solve(K, np.append(y, slope))
+    var = np.diag(k(grid, grid)) - np.sum(Ks * np.linalg.solve(K, Ks), axis=0)
+    got_mean, got_var = posterior_with_slope(tau, y, slope, slope_var, grid, theta, noise)
+    assert np.allclose(got_mean, mean, atol=1e-6)
+    assert np.allclose(got_var, var, atol=1e-6)
+
+
+def test_integration_rules():
+    tau = np.arange(11) * 0.1
+    speed = 10.0 + 2.0 * tau  # 2 m/s² along north
+    heading = np.zeros(11)
+    _x, y = integrate(0.0, 0.0, tau, speed, heading, np.zeros(11), "trapezoid")
+    assert y[-1] == pytest.approx(10.0 * 1.0 + 0.5 * 2.0 * 1.0, abs=1e-12)  # exact for linear
+    _, y_left = integrate(0.0, 0.0, tau, speed, heading, np.zeros(11), "left")
+    assert y_left[-1] == pytest.approx(11.0 - 0.1, abs=1e-9)  # Riemann sum lags by a·Δt·T/2
+    # heading variance shrinks the expected displacement by exp(-σ²/2) (paper's E[cos h])
+    _, y_var = integrate(0.0, 0.0, tau, np.full(11, 10.0), heading, np.full(11, 0.5))
+    assert y_var[-1] == pytest.approx(10.0 * math.exp(-0.25), rel=1e-12)
+    with pytest.raises(ValueError):
+        integrate(0.0, 0.0, tau, speed, heading, np.zeros(11), "simpson")
+
+
+@pytest.mark.parametrize("slopes", [True, False])
+def test_constant_velocity_is_forecast_exactly(slopes):
+    p = HgpPredictor(BANK, HgpConfig(slopes=slopes))
+    for o in drive(30):
+        p.update(o)
+    truth = drive(60)
+    for k in (31, 40, 59):
+        r = p.predict(truth[k].t)
+        assert math.hypot(r.x - truth[k].x, r.y - truth[k].y) < 0.05
+        assert r.source == "gp"
+
+
+def test_slopes_carry_the_bsm_acceleration_and_yaw_rate():
+    """A vehicle that has just started braking and turning: its history shows neither yet,
+    only the BSM's acceleration and yaw rate do.  With slopes the forecast follows them."""
+    hist = drive(30, v0=20.0)
+    last = Observation(hist[-1].t + 0.1, hist[-1].x + 2.0, hist[-1].y, 20.0, 90.0, -4.0, 10.0)
+    with_s = HgpPredictor(BANK, HgpConfig(slopes=True, **NO_SWITCH))
+    without = HgpPredictor(BANK, HgpConfig(slopes=False, **NO_SWITCH))
+    for p in (with_s, without):
+        for o in [*hist, last]:
+            p.update(o)
+    a, b = with_s.predict(last.t + 2.0), without.predict(last.t + 2.0)
+    assert b.speed == pytest.approx(20.0, abs=0.1) and b.heading == pytest.approx(90.0, abs=0.1)
+    assert a.speed < b.speed - 1.0  # braking is forecast only with slopes
+    assert a.heading > b.heading + 3.0  # so is the turn
+
+
+def test_negative_speed_switches_to_a_stop():
+    p = HgpPredictor(BANK, HgpConfig(**NO_SWITCH))
+    for o in drive(30, v0=9.0, a=-2.5):  # braking, 1.75 m/s left at the last BSM
+        p.update(o)
+    last = p._obs[-1]
+    far = p.predict(last.t + 5.0)
+    later = p.predict(last.t + 8.0)
+    assert far.source == "ca" and far.speed == 0.0
+    assert (far.x, far.y) == (later.x, later.y)  # stopped means stopped
+    assert far.x - last.x < 1.75 * 5.0  # it stopped well short of constant speed
+    assert p.stats["switch_ca"] >= 1
+
+
+@pytest.mark.parametrize("limit", [{"accel_max": 0.5}, {"speed_std_max": 1e-4},
+                                   {"heading_std_max": 1e-4}])
+def test_each_plausibility_criterion_switches_to_constant_speed(limit):
+    cfg = HgpConfig(**{**NO_SWITCH, **limit})
+    p = HgpPredictor(BANK, cfg)
+    for o in drive(31, v0=10.0, a=2.0):
+        p.update(o)
+    r = p.predict(p._obs[-1].t + 3.0)
+    assert r.source == "cs"
+    assert p.stats["switch_cs"] == 1
+
+
+def test_yaw_rate_criterion():
+    p = HgpPredictor(BANK, HgpConfig(**{**NO_SWITCH, "yaw_rate_max": 5.0}))
+    for o in drive(31, v0=10.0, yaw=30.0):
+        p.update(o)
+    assert p.predict(p._obs[-1].t + 2.0).source == "cs"
+
+
+def test_protocol_rules():
+    p = HgpPredictor(BANK)
+    with pytest.raises(LookupError):
+        p.predict(0.0)
+    obs = drive(5)
+    for o in obs:
+        p.update(o)
+    p.update(obs[2])  # a replay is ignored
+    r = p.predict(obs[-1].t)
+    assert (r.x, r.y, r.source) == (obs[-1].x, obs[-1].y, "bsm")
+    with pytest.raises(ValueError):
+        p.predict(obs[-1].t - 1.0)
+    p.reset()
+    with pytest.raises(LookupError):
+        p.predict(1.0)
+
+
+def test_too_little_history_falls_back_to_ca():
+    p = HgpPredictor(BANK)
+    o = Observation(0.0, 0.0, 0.0, 10.0, 0.0, -2.0, 0.0)
+    p.update(o)
+    r = p.predict(2.0)
+    assert r.source == "ca" and r.y == pytest.approx(10.0 * 2 - 0.5 * 2 * 4)
+
+
+def test_online_models_are_created_and_bounded():
+    cfg = HgpConfig(online=True, online_max=2, pte_th=1e-6)
+    p = HgpPredictor(BANK, cfg)
+    for k, o in enumerate(drive(60, v0=12.0, a=1.0, yaw=5.0)):
+        p.update(o)
+        if k >= 30:
+            p.predict(o.t + 0.5)
+    assert p.stats["online_models"] > 2
+    assert len(p._online_speed) == 2
+
+
+def test_direct_hgp_on_constant_velocity():
+    p = HgpDirectPredictor()
+    for o in drive(30, v0=15.0, heading0=30.0):
+        p.update(o)
+    truth = drive(50, v0=15.0, heading0=30.0)
+    r = p.predict(truth[45].t)
+    assert math.hypot(r.x - truth[45].x, r.y - truth[45].y) < 0.2
+    assert r.heading == pytest.approx(30.0, abs=1.0)

@@ -59,6 +59,10 @@ VARIANTS: dict[str, tuple[str, dict, str]] = {
     "yaw-sd-0.18": ("BSM yaw rate σ 0.18 deg/s (shipped 0.31)", {"noise_yaw": 1e-5},
                     "default"),
     "yaw-sd-0.57": ("BSM yaw rate σ 0.57 deg/s", {"noise_yaw": 1e-4}, "default"),
+    "ca-speed": ("diagnostic: CA speed forecast, GP heading", {"speed_model": "ca"},
+                 "default"),
+    "ctrv-heading": ("diagnostic: GP speed, constant-yaw-rate heading",
+                     {"heading_model": "ctrv"}, "default"),
 }
 BASELINES = ("ca", "kf", "ctrv")
 

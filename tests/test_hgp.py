@@ -188,3 +188,19 @@ def test_direct_hgp_on_constant_velocity():
     r = p.predict(truth[45].t)
     assert math.hypot(r.x - truth[45].x, r.y - truth[45].y) < 0.2
     assert r.heading == pytest.approx(30.0, abs=1.0)
+
+
+def test_batched_slope_likelihood_equals_the_joint_gaussian():
+    from scipy.stats import multivariate_normal
+
+    from catc.predict.hgp import _slope_system, lml_with_slope
+
+    rng = np.random.default_rng(4)
+    tau = np.append(-np.sort(rng.uniform(0.1, 3, 9))[::-1], 0.0)
+    y, slope = rng.normal(size=10), 0.3
+    thetas = np.array([[1.7, 0.8, 0.3], [0.5, 0.1, 0.02], [20.0, 1.5, 0.9]])
+    got = lml_with_slope(tau, y, slope, 1e-2, thetas, 1e-3)
+    for theta, value in zip(thetas, got, strict=True):
+        K, _ = _slope_system(tau, theta, 1e-3, 1e-2)
+        assert value == pytest.approx(
+            multivariate_normal(np.zeros(11), K).logpdf(np.append(y, slope)), abs=1e-8)

@@ -58,6 +58,7 @@ from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg import cho_solve, solve_triangular
 
 from catc.predict import gp
 from catc.predict.bank import KernelBank, default_bank
@@ -95,6 +96,10 @@ class HgpConfig:
     online_max: int = 32
     integration: str = "trapezoid"  # or "left", the paper's literal recursion
     heading_damping: bool = True  # E[cos h] = exp(−σh²/2)·cos μh (paper); False: cos μh
+    # Diagnostics: replace one GP by its kinematic counterpart (needs ``slopes``):
+    # speed "ca" = last speed + acceleration·τ; heading "ctrv" = last heading + yaw rate·τ.
+    speed_model: str = "gp"
+    heading_model: str = "gp"
     window_s: float = math.inf  # also drop samples older than this (s) before the last one
     slopes: bool = True  # condition on the BSM's accel and yaw rate at the last sample
     select_with_slopes: bool = True  # choose bank models by the likelihood of values + slope
@@ -145,8 +150,8 @@ def posterior_with_slope(tau: np.ndarray, y: np.ndarray, slope: float, slope_var
     Ks[:n] = gp.kernel(tau, grid, theta)
     Ks[n] = k_fd(grid)
     L = np.linalg.cholesky(K)
-    alpha = np.linalg.solve(L.T, np.linalg.solve(L, np.append(y, slope)))
-    v = np.linalg.solve(L, Ks)
+    alpha = cho_solve((L, True), np.append(y, slope), check_finite=False)
+    v = solve_triangular(L, Ks, lower=True, check_finite=False)
     _, a1, a2 = theta
     var = a1 * a1 + a2 * a2 * grid * grid - np.sum(v * v, axis=0)
     return Ks.T @ alpha, var
@@ -155,19 +160,34 @@ def posterior_with_slope(tau: np.ndarray, y: np.ndarray, slope: float, slope_var
 def lml_with_slope(tau: np.ndarray, y: np.ndarray, slope: float, slope_var: float,
                    thetas: np.ndarray, noise_var: float) -> np.ndarray:
     """Log marginal likelihood of (values, slope) under each model in ``thetas`` (R&W eq. 2.30
-    with the derivative observation appended)."""
+    with the derivative observation appended), batched over the bank."""
+    gamma, a1, a2 = (thetas[:, i, None] for i in range(3))
+    n = len(tau)
+    sq = (tau[:, None] - tau[None, :]) ** 2
+    K = np.empty((len(thetas), n + 1, n + 1))
+    K[:, :n, :n] = (a1 * a1)[:, :, None] * np.exp(-0.5 * sq / (gamma * gamma)[:, :, None]) \
+        + (a2 * a2)[:, :, None] * np.outer(tau, tau) + noise_var * np.eye(n)
+    k_fd = a1 * a1 * tau / (gamma * gamma) * np.exp(-0.5 * tau * tau / (gamma * gamma)) \
+        + a2 * a2 * tau
+    K[:, :n, n] = K[:, n, :n] = k_fd
+    K[:, n, n] = (a1 * a1 / (gamma * gamma) + a2 * a2)[:, 0] + slope_var
     z = np.append(y, slope)
-    out = np.empty(len(thetas))
-    for i, theta in enumerate(thetas):
-        K, _ = _slope_system(tau, theta, noise_var, slope_var)
-        try:
-            L = np.linalg.cholesky(K)
-        except np.linalg.LinAlgError:
-            out[i] = -np.inf
-            continue
-        w = np.linalg.solve(L, z)
-        out[i] = -0.5 * w @ w - np.log(np.diag(L)).sum() - 0.5 * len(z) * math.log(2 * math.pi)
-    return out
+    try:
+        L = np.linalg.cholesky(K)
+    except np.linalg.LinAlgError:  # one ill-conditioned model: score them one by one
+        return np.array([lml_with_slope(tau, y, slope, slope_var, th[None], noise_var)[0]
+                         if _is_pd(K[i]) else -np.inf for i, th in enumerate(thetas)])
+    w = np.linalg.solve(L, np.broadcast_to(z, (len(thetas), n + 1))[..., None])[..., 0]
+    logdet = np.log(np.diagonal(L, axis1=1, axis2=2)).sum(axis=1)
+    return -0.5 * np.einsum("mi,mi->m", w, w) - logdet - 0.5 * (n + 1) * math.log(2 * math.pi)
+
+
+def _is_pd(K: np.ndarray) -> bool:
+    try:
+        np.linalg.cholesky(K)
+    except np.linalg.LinAlgError:
+        return False
+    return True
 
 
 def forecast_path(tau: np.ndarray, ys: np.ndarray, yh: np.ndarray, slopes: tuple | None,
@@ -187,6 +207,10 @@ def forecast_path(tau: np.ndarray, ys: np.ndarray, yh: np.ndarray, slopes: tuple
                                       c.noise_speed)
         mh, vh = posterior_with_slope(tau, yh, slopes[1], c.noise_yaw, grid, theta_h,
                                       c.noise_heading)
+        if c.speed_model == "ca":
+            ms, vs = slopes[0] * grid, np.zeros_like(grid)
+        if c.heading_model == "ctrv":
+            mh, vh = slopes[1] * grid, np.zeros_like(grid)
     return ms, np.maximum(vs, 0.0), mh, np.maximum(vh, 0.0)
 
 

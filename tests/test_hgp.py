@@ -204,3 +204,34 @@ def test_batched_slope_likelihood_equals_the_joint_gaussian():
         K, _ = _slope_system(tau, theta, 1e-3, 1e-2)
         assert value == pytest.approx(
             multivariate_normal(np.zeros(11), K).logpdf(np.append(y, slope)), abs=1e-8)
+
+
+def test_regular_grid_selection_cache_equals_the_direct_likelihood():
+    from catc.predict.hgp import RegularSlopeBank, lml_with_slope
+
+    rng = np.random.default_rng(5)
+    thetas = np.array([[1.7, 0.8, 0.3], [0.5, 0.1, 0.02], [20.0, 1.5, 0.9]])
+    cache = RegularSlopeBank(thetas, 30, 0.01, 0.005)
+    y = np.cumsum(rng.normal(size=30)) * 0.1
+    y -= y[-1]
+    assert np.allclose(cache.lml(y, 0.4), lml_with_slope(cache.tau, y, 0.4, 0.005, thetas, 0.01),
+                       atol=1e-8)
+
+
+def test_predictor_uses_the_cache_only_on_regular_full_windows():
+    p = HgpPredictor(BANK)
+    obs = drive(40, v0=12.0, a=0.5, yaw=3.0)
+    for o in obs[:30]:
+        p.update(o)
+    assert p._regular_cache(np.arange(-29, 1) * 0.1) is not None
+    assert p._regular_cache(np.arange(-28, 1) * 0.1) is None  # not a full window
+    tau = np.arange(-29, 1) * 0.1
+    tau[3] += 0.05
+    assert p._regular_cache(tau) is None  # a lost message
+    a = p.predict(3.5)
+    q = HgpPredictor(BANK, HgpConfig(select_with_slopes=True))
+    q._regular_cache = lambda tau: None  # force the direct path
+    for o in obs[:30]:
+        q.update(o)
+    b = q.predict(3.5)
+    assert (a.x, a.y) == (pytest.approx(b.x, abs=1e-9), pytest.approx(b.y, abs=1e-9))

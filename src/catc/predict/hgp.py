@@ -157,10 +157,9 @@ def posterior_with_slope(tau: np.ndarray, y: np.ndarray, slope: float, slope_var
     return Ks.T @ alpha, var
 
 
-def lml_with_slope(tau: np.ndarray, y: np.ndarray, slope: float, slope_var: float,
-                   thetas: np.ndarray, noise_var: float) -> np.ndarray:
-    """Log marginal likelihood of (values, slope) under each model in ``thetas`` (R&W eq. 2.30
-    with the derivative observation appended), batched over the bank."""
+def _slope_stack(tau: np.ndarray, thetas: np.ndarray, noise_var: float,
+                 slope_var: float) -> np.ndarray:
+    """:func:`_slope_system`'s covariance for every model in ``thetas``: (M, n+1, n+1)."""
     gamma, a1, a2 = (thetas[:, i, None] for i in range(3))
     n = len(tau)
     sq = (tau[:, None] - tau[None, :]) ** 2
@@ -171,6 +170,15 @@ def lml_with_slope(tau: np.ndarray, y: np.ndarray, slope: float, slope_var: floa
         + a2 * a2 * tau
     K[:, :n, n] = K[:, n, :n] = k_fd
     K[:, n, n] = (a1 * a1 / (gamma * gamma) + a2 * a2)[:, 0] + slope_var
+    return K
+
+
+def lml_with_slope(tau: np.ndarray, y: np.ndarray, slope: float, slope_var: float,
+                   thetas: np.ndarray, noise_var: float) -> np.ndarray:
+    """Log marginal likelihood of (values, slope) under each model in ``thetas`` (R&W eq. 2.30
+    with the derivative observation appended), batched over the bank."""
+    K = _slope_stack(tau, thetas, noise_var, slope_var)
+    n = len(tau)
     z = np.append(y, slope)
     try:
         L = np.linalg.cholesky(K)
@@ -180,6 +188,25 @@ def lml_with_slope(tau: np.ndarray, y: np.ndarray, slope: float, slope_var: floa
     w = np.linalg.solve(L, np.broadcast_to(z, (len(thetas), n + 1))[..., None])[..., 0]
     logdet = np.log(np.diagonal(L, axis1=1, axis2=2)).sum(axis=1)
     return -0.5 * np.einsum("mi,mi->m", w, w) - logdet - 0.5 * (n + 1) * math.log(2 * math.pi)
+
+
+class RegularSlopeBank:
+    """:func:`lml_with_slope` for the regular grid τ = −(n−1)·DT … 0, with every model's
+    K⁻¹ and log-determinant computed once: a new window costs one einsum."""
+
+    def __init__(self, thetas: np.ndarray, n: int, noise_var: float, slope_var: float) -> None:
+        self.tau = (np.arange(n) - (n - 1)) * DT
+        K = _slope_stack(self.tau, thetas, noise_var, slope_var)
+        L = np.linalg.cholesky(K)
+        eye = np.broadcast_to(np.eye(n + 1), K.shape)
+        Linv = np.linalg.solve(L, eye)
+        self.Kinv = np.einsum("mki,mkj->mij", Linv, Linv)
+        self.const = -np.log(np.diagonal(L, axis1=1, axis2=2)).sum(axis=1) \
+            - 0.5 * (n + 1) * math.log(2 * math.pi)
+
+    def lml(self, y: np.ndarray, slope: float) -> np.ndarray:
+        z = np.append(y, slope)
+        return -0.5 * np.einsum("i,mij,j->m", z, self.Kinv, z) + self.const
 
 
 def _is_pd(K: np.ndarray) -> bool:
@@ -266,6 +293,10 @@ def _read(f: _Forecast, tau: float) -> Prediction:
                       lerp(f.var_x), lerp(f.var_y), f.source[k + 1])
 
 
+#: Regular-grid selection caches, keyed by bank identity and the noise configuration.
+_REGULAR_CACHE: dict[tuple, tuple[RegularSlopeBank, RegularSlopeBank]] = {}
+
+
 class _WindowPredictor:
     """What both GP predictors share: the window of received observations and a cached
     forecast from the last one."""
@@ -336,6 +367,20 @@ class HgpPredictor(_WindowPredictor):
         return Prediction(last.x + dist * math.sin(h), last.y + dist * math.cos(h),
                           max(0.0, last.speed + a * tt), last.heading, source="ca")
 
+    def _regular_cache(self, tau: np.ndarray) -> tuple[RegularSlopeBank, ...] | None:
+        """The cached selection for a window of ``tw`` samples at exactly DT apart (no loss),
+        built once per bank and configuration and shared by all predictors."""
+        c = self.config
+        if len(tau) != c.tw or np.max(np.abs(np.diff(tau) - DT)) > 1e-6:
+            return None
+        key = (id(self.bank), c.tw, c.noise_speed, c.noise_heading, c.noise_accel, c.noise_yaw)
+        cache = _REGULAR_CACHE.get(key)
+        if cache is None:
+            cache = _REGULAR_CACHE[key] = (
+                RegularSlopeBank(self.bank.speed, c.tw, c.noise_speed, c.noise_accel),
+                RegularSlopeBank(self.bank.heading, c.tw, c.noise_heading, c.noise_yaw))
+        return cache
+
     def _select(self, tau: np.ndarray, ys: np.ndarray, yh: np.ndarray,
                 slopes: tuple[float, float] | None = None) -> tuple[np.ndarray, ...]:
         c = self.config
@@ -345,8 +390,14 @@ class HgpPredictor(_WindowPredictor):
             speed_bank = np.vstack([speed_bank, np.array(self._online_speed)])
             heading_bank = np.vstack([heading_bank, np.array(self._online_heading)])
         if slopes is not None and c.select_with_slopes:
-            ls = lml_with_slope(tau, ys, slopes[0], c.noise_accel, speed_bank, c.noise_speed)
-            lh = lml_with_slope(tau, yh, slopes[1], c.noise_yaw, heading_bank, c.noise_heading)
+            cache = None if self._online_speed else self._regular_cache(tau)
+            if cache is not None:
+                ls, lh = cache[0].lml(ys, slopes[0]), cache[1].lml(yh, slopes[1])
+            else:
+                ls = lml_with_slope(tau, ys, slopes[0], c.noise_accel, speed_bank,
+                                    c.noise_speed)
+                lh = lml_with_slope(tau, yh, slopes[1], c.noise_yaw, heading_bank,
+                                    c.noise_heading)
         else:
             ls = gp.bank_log_marginal_likelihood(tau, ys, speed_bank, c.noise_speed)
             lh = gp.bank_log_marginal_likelihood(tau, yh, heading_bank, c.noise_heading)

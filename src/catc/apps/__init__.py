@@ -1,0 +1,1 @@
+"""Cooperative safety applications (pure library code: no I/O, no clocks)."""

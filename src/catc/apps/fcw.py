@@ -1,0 +1,295 @@
+"""Cooperative Forward Collision Warning (FCW): the CAMP Linear warning range.
+
+Source: the reference paper, section "Cooperative Forward Collision Warning (FCW)"
+(it cites Lee 2005 and Kiefer et al. 2003, "Forward collision warning requirements
+project", DOT HS 809 574).  Equations as printed there (both carry the label
+``equ:FCW`` in the paper; called (FCW-1) and (FCW-2) here)::
+
+    (FCW-1)  r_w = BOR + (v_HV - v_RV) t_d + 1/2 (a_HV - a_RV) t_d^2
+
+    (FCW-2)  Case 1 (RV stationary):
+                 BOR = v_HVp^2 / (-2 a_req)
+             Case 2 (RV moving at the beginning and end of the scenario):
+                 BOR = (v_HVp - v_RVp)^2 / (-2 (a_req - a_RV))
+             Case 3 (RV moving at the beginning but stopping at the end):
+                 BOR = v_HVp^2 / (-2 a_req) - v_RVp^2 / (-2 a_RV)
+
+    with v_HVp = v_HV + a_HV t_d  and  v_RVp = v_RV + a_RV t_d.
+
+"A warning is issued if the distance between the HV and the RV is less than the
+r_w."  ``t_d`` is the driver and brake-system reaction delay, ``a_req`` the
+deceleration the HV driver is assumed to apply after ``t_d`` (the paper: "modeled
+in [Kiefer 2003] using real data").  BOR (brake onset range) is the gap needed at
+brake onset so that the HV, braking at ``a_req``, just does not reach the RV.
+
+Units: speeds in m/s (>= 0), accelerations in m/s^2 (negative = braking),
+ranges in metres, times in seconds.
+
+Choices this module makes where the paper is silent (all documented, all tested):
+
+* **a_req** is a constant :attr:`FcwConfig.a_req` (default -0.55 g).  The CAMP
+  Required Deceleration Model (Kiefer et al.) makes a_req depend on the lead
+  vehicle's deceleration, whether it moves and the closing speed; its coefficients
+  could not be found in the sources available here, so it is not implemented.
+  ``a_req >= 0`` is a configuration error (:class:`ValueError`): the formulas
+  divide by ``-2 a_req`` and need a braking HV.
+* **Predicted speeds are clamped at 0**: ``v_HVp = max(0, v_HV + a_HV t_d)`` (same
+  for the RV).  A braking vehicle stops; it does not reverse within ``t_d``.  The
+  delay term of (FCW-1) is used exactly as printed (not clamped).
+* **Case selection.**  Case 1 if ``v_RV <= rv_stationary_speed``.  Otherwise case 3
+  if the RV stops strictly before the HV would, braking from the predicted speeds
+  (RV at ``a_RV``, HV at ``a_req``)::
+
+      a_RV < 0  and  v_RVp / (-a_RV) < v_HVp / (-a_req)
+      <=>  a_RV < 0  and  v_RVp * a_req > v_HVp * a_RV      (no division)
+
+  and case 2 otherwise.  At equality (both stop at the same instant T) cases 2 and
+  3 give the same BOR, ``T^2 (a_RV - a_req) / 2``, so the boundary is continuous;
+  it is assigned to case 2.  (For a closing HV, "RV stops first" is equivalent to
+  "the speeds would not equalise while the RV still moves", which is what the
+  case-2 formula, the gap at equal speeds, assumes.)
+* **Not closing at brake onset.**  The case-2 formula squares ``v_HVp - v_RVp`` and
+  would report a positive range for an opening gap; when ``v_HVp <= v_RVp`` in case
+  2 the gap never shrinks after brake onset, so ``BOR = 0``.  In case 3 the printed
+  difference can be negative when the HV would stop short of the RV's stopping
+  point with no gap at all; ``BOR = max(0, ...)``.  The printed value is kept in
+  :attr:`FcwRange.bor_printed`.
+* **r_w is not clamped**: the delay term is negative when the RV is faster, so
+  ``r_w <= 0`` is possible; :func:`should_warn` then never warns (range >= 0).
+* **Stationary HV.**  ``v_HV <= min_hv_speed`` (default 0.0, i.e. a stopped HV)
+  makes the FCW inactive (:attr:`FcwRange.active` is False, no warning): a warning
+  to brake means nothing to a stopped vehicle.  r_w is still computed.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+__all__ = [
+    "FcwConfig",
+    "FcwEvent",
+    "FcwMonitor",
+    "FcwRange",
+    "G",
+    "should_warn",
+    "warning_range",
+]
+
+#: Standard gravity, m/s^2 (ISO 80000-3), used only to express a_req in g.
+G = 9.80665
+
+
+@dataclass(frozen=True)
+class FcwConfig:
+    """Parameters of the CAMP Linear FCW; every default is justified inline."""
+
+    # Driver + brake-system reaction delay t_d (s), (FCW-1).  The paper names t_d but
+    # gives no value.  1.5 s is a common engineering value for an alerted driver's
+    # brake reaction plus brake build-up; NOT taken from Kiefer 2003 (not verified).
+    t_d: float = 1.5
+    # Deceleration the HV driver is assumed to apply after t_d (m/s^2, < 0), (FCW-2).
+    # Paper: "modeled in [Kiefer 2003] using real data"; that model's coefficients
+    # were not available here, so a constant is used.  -0.55 g (≈ -5.39 m/s²) is a
+    # firm-but-not-maximal braking level, below a dry-road emergency stop (~-0.8 g);
+    # an assumption, not a value read from DOT HS 809 574.
+    a_req: float = -0.55 * G
+    # RV speed (m/s) at or below which the RV counts as stationary (case 1).  0.0:
+    # the paper gives no threshold, and BOR is continuous at v_RV = 0 for a_RV = 0
+    # (case 2 reduces to case 1), so no tolerance is needed for the formulas.
+    rv_stationary_speed: float = 0.0
+    # HV speed (m/s) at or below which the FCW is inactive (no warning).  0.0 = only
+    # a stopped HV is excluded; the paper gives no minimum speed.
+    min_hv_speed: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("t_d", "a_req", "rv_stationary_speed", "min_hv_speed"):
+            if not math.isfinite(getattr(self, name)):
+                raise ValueError(f"FcwConfig.{name} must be finite")
+        if self.a_req >= 0.0:
+            raise ValueError(f"FcwConfig.a_req must be < 0 (braking), got {self.a_req}")
+        if self.t_d < 0.0:
+            raise ValueError(f"FcwConfig.t_d must be >= 0, got {self.t_d}")
+        if self.rv_stationary_speed < 0.0 or self.min_hv_speed < 0.0:
+            raise ValueError("FcwConfig speed thresholds must be >= 0")
+
+
+@dataclass(frozen=True)
+class FcwRange:
+    """The warning range and the intermediate values that led to it."""
+
+    r_w: float  # warning range (m), (FCW-1); may be <= 0 (never warns then)
+    bor: float  # brake onset range used in r_w (m), >= 0
+    bor_printed: float  # (FCW-2) of the selected case as printed, before the >= 0 rules
+    case: int  # 1, 2 or 3, (FCW-2)
+    v_hvp: float  # max(0, v_HV + a_HV t_d)
+    v_rvp: float  # max(0, v_RV + a_RV t_d)
+    delay_term: float  # (v_HV - v_RV) t_d + 1/2 (a_HV - a_RV) t_d^2
+    closing: bool  # v_HVp > v_RVp (closing at brake onset)
+    active: bool  # False when v_HV <= min_hv_speed (stationary HV): no warning
+    t_d: float
+    a_req: float
+
+
+def _check(name: str, value: float, *, nonneg: bool) -> float:
+    value = float(value)
+    if not math.isfinite(value):
+        raise ValueError(f"{name} must be finite, got {value}")
+    if nonneg and value < 0.0:
+        raise ValueError(f"{name} must be >= 0 (a speed), got {value}")
+    return value
+
+
+def warning_range(
+    v_hv: float,
+    a_hv: float,
+    v_rv: float,
+    a_rv: float,
+    config: FcwConfig = FcwConfig(),  # frozen dataclass: a safe shared default
+) -> FcwRange:
+    """CAMP Linear warning range r_w for an HV following an RV (see module docstring).
+
+    ``v_hv``/``v_rv`` in m/s (>= 0), ``a_hv``/``a_rv`` in m/s² (negative = braking).
+    Raises :class:`ValueError` for a negative speed or a non-finite input.
+    """
+    v_hv = _check("v_hv", v_hv, nonneg=True)
+    a_hv = _check("a_hv", a_hv, nonneg=False)
+    v_rv = _check("v_rv", v_rv, nonneg=True)
+    a_rv = _check("a_rv", a_rv, nonneg=False)
+    t_d, a_req = config.t_d, config.a_req
+
+    # Predicted speeds at the end of the delay, clamped at 0 (no reversing).
+    v_hvp = max(0.0, v_hv + a_hv * t_d)
+    v_rvp = max(0.0, v_rv + a_rv * t_d)
+    closing = v_hvp > v_rvp
+
+    if v_rv <= config.rv_stationary_speed:
+        case = 1
+        bor_printed = v_hvp**2 / (-2.0 * a_req)
+        bor = bor_printed
+    else:
+        # RV stops strictly before the HV: v_RVp/(-a_RV) < v_HVp/(-a_req).  The second
+        # clause is implied in exact arithmetic (a closing HV that is not outlasted by
+        # the RV must brake harder than it) and only guards rounding, so that case 2
+        # never divides by a_req - a_RV >= 0 while closing.
+        rv_stops_first = a_rv < 0.0 and (
+            v_rvp * a_req > v_hvp * a_rv or (closing and a_rv <= a_req)
+        )
+        if rv_stops_first:
+            case = 3
+            bor_printed = v_hvp**2 / (-2.0 * a_req) - v_rvp**2 / (-2.0 * a_rv)
+            bor = max(0.0, bor_printed)
+        else:
+            case = 2
+            denom = -2.0 * (a_req - a_rv)
+            bor_printed = (v_hvp - v_rvp) ** 2 / denom if denom != 0.0 else math.inf
+            bor = bor_printed if closing else 0.0
+
+    delay_term = (v_hv - v_rv) * t_d + 0.5 * (a_hv - a_rv) * t_d**2
+    return FcwRange(
+        r_w=bor + delay_term,
+        bor=bor,
+        bor_printed=bor_printed,
+        case=case,
+        v_hvp=v_hvp,
+        v_rvp=v_rvp,
+        delay_term=delay_term,
+        closing=closing,
+        active=v_hv > config.min_hv_speed,
+        t_d=t_d,
+        a_req=a_req,
+    )
+
+
+def should_warn(range_m: float, fcw_range: FcwRange) -> bool:
+    """True when the HV–RV range (m) is below r_w: ``0 <= range_m < r_w``.
+
+    A negative or non-finite range (RV behind, or no valid range) never warns, and
+    neither does an inactive FCW (stationary HV).  At exactly r_w: no warning
+    ("less than the r_w").
+    """
+    if not fcw_range.active or not math.isfinite(range_m) or range_m < 0.0:
+        return False
+    return range_m < fcw_range.r_w
+
+
+@dataclass(frozen=True)
+class FcwEvent:
+    """A warning episode for one RV; ``t_end`` is None while it is still open."""
+
+    kind: str  # "start" or "end"
+    rv_id: object
+    t_start: float
+    t_end: float | None = None
+
+
+@dataclass
+class _RvState:
+    on_count: int = 0  # consecutive warn ticks while idle
+    first_on_t: float | None = None  # time of the first of those ticks
+    active_start: float | None = None  # t_start of the open event
+    last_true_t: float | None = None  # last tick with warn=True while open
+    false_since: float | None = None  # first warn=False tick of the current gap
+
+
+@dataclass
+class FcwMonitor:
+    """Turns per-tick warn flags into start/end events per RV, with hysteresis.
+
+    Pure: the caller passes the time ``t`` (s, non-decreasing per RV).
+
+    * **Start:** after ``warn`` has been True on ``on_ticks`` consecutive updates of
+      that RV; ``t_start`` is the time of the first of those ticks.
+    * **End:** once ``warn`` has been False for ``off_time`` seconds, i.e. at an
+      update with ``t - (first False tick of the gap) >= off_time``; ``t_end`` is the
+      first False tick of the gap (when the warning condition actually stopped).
+      A True tick within the gap cancels it (flicker), and the event goes on.
+
+    ``off_time`` defaults to 0.5 s: five ticks at the 10 Hz BSM/FCW rate.  A range
+    hovering at r_w (measurement noise, a lost BSM) flips ``warn`` for a tick or two;
+    without a hold-off each flip would end the event and start a new one, inflating
+    warning counts and chopping their durations.  0.5 s is short against the t_d of
+    1.5 s, so a real release is still reported promptly.
+    """
+
+    on_ticks: int = 1
+    off_time: float = 0.5
+    _rv: dict[object, _RvState] = field(default_factory=dict, init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.on_ticks < 1:
+            raise ValueError("on_ticks must be >= 1")
+        if not (math.isfinite(self.off_time) and self.off_time >= 0.0):
+            raise ValueError("off_time must be finite and >= 0")
+
+    def update(self, t: float, rv_id: object, warn: bool) -> list[FcwEvent]:
+        """Feed one tick for ``rv_id``; returns the events it produced (0 or 1)."""
+        st = self._rv.setdefault(rv_id, _RvState())
+        if st.active_start is None:  # idle
+            if not warn:
+                st.on_count, st.first_on_t = 0, None
+                return []
+            if st.on_count == 0:
+                st.first_on_t = t
+            st.on_count += 1
+            if st.on_count < self.on_ticks:
+                return []
+            assert st.first_on_t is not None
+            st.active_start, st.last_true_t, st.false_since = st.first_on_t, t, None
+            st.on_count, st.first_on_t = 0, None
+            return [FcwEvent("start", rv_id, st.active_start)]
+        # event open
+        if warn:
+            st.last_true_t, st.false_since = t, None
+            return []
+        if st.false_since is None:
+            st.false_since = t
+        if t - st.false_since >= self.off_time:
+            ev = FcwEvent("end", rv_id, st.active_start, st.false_since)
+            self._rv[rv_id] = _RvState()
+            return [ev]
+        return []
+
+    def open_events(self) -> dict[object, float]:
+        """rv_id -> t_start of the events still open (e.g. at the end of a capture)."""
+        return {k: s.active_start for k, s in self._rv.items() if s.active_start is not None}

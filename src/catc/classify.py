@@ -1,0 +1,401 @@
+"""Target classification (TC): the zone of a remote vehicle (RV) relative to the host (HV).
+
+This implements the "Target Classification" subsection of the reference paper
+(Context-Aware Target Classification with Hybrid Gaussian Process prediction, section
+"Context-Aware Target Classification (CA-TC)"), which follows Lee 2005 and Kim 2016:
+
+* Eq. (tc_longi), longitudinal::
+
+      RV_class = Ahead   if Xrel >= 0
+                 Behind  if Xrel <  0
+
+* Eq. (tc_lateral), lateral, with ``ld`` the lateral distance (positive to the LEFT in
+  the paper) and ``w_lane`` the lane width::
+
+      Far Left   ld in ( 1.5 w_lane,  inf)
+      Left       ld in ( 0.5 w_lane,  1.5 w_lane]
+      On Centre  ld in [-0.5 w_lane,  0.5 w_lane]
+      Right      ld in [-1.5 w_lane, -0.5 w_lane)
+      Far Right  ld in (-inf,        -1.5 w_lane)
+
+* Eq. (tc_heading), direction, comparing the lane heading ``phi_lane`` with the RV
+  heading ``phi_RV``::
+
+      Ongoing         |phi_RV - phi_lane| <= dphi_ongoing
+      Oncoming        |phi_RV - phi_lane| >= dphi_oncoming
+      not classified  otherwise
+
+Conventions
+-----------
+ENU metres (x east, y north) in the run's local frame; headings in degrees clockwise
+from north (J2735, as in :mod:`catc.geo`); yaw rate in deg/s positive clockwise
+(J2735 YawRate, as in :mod:`catc.predict.base`).
+
+Path coordinates ``(s, d)`` are measured along the HV's path, not as a straight-line
+projection ("the CAM leverages vehicles' path history, road geometry ... HV path
+prediction"):
+
+* ``s`` (the paper's ``Xrel``) is the signed arc length from the HV to the point of its
+  path closest to the RV; positive ahead.
+* ``d`` is the signed offset of the RV from that point, **positive to the RIGHT** of the
+  direction of travel (the J2735 / NED-style sense: clockwise headings, y to the right).
+  The paper's ``ld`` is positive to the left, so ``ld = -d``.  Eq. (tc_lateral) is
+  symmetric in ``|ld|`` (closed at +-0.5 w_lane, Left/Right closed at +-1.5 w_lane), so
+  only the side changes sign.
+
+The path ahead of the HV is a circular arc of signed radius ``R = v / omega`` (constant
+speed and yaw rate; positive ``R`` = turning right, centre on the right; ``inf`` =
+straight).  The path behind is the HV's path-history polyline when one is given, else
+the same arc run backwards.  ``phi_lane`` in Eq. (tc_heading) is taken as the heading of
+the HV path at the RV's closest point (the arc tangent there, or the history segment's
+direction), so a vehicle in the same lane around a bend stays Ongoing.
+
+Everything here is pure computation: no I/O, no clocks.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from catc.geo import enu_heading_deg, heading_diff_deg
+
+__all__ = [
+    "ClassifyConfig",
+    "Direction",
+    "HostPath",
+    "Lateral",
+    "Longitudinal",
+    "PathPoint",
+    "Zone",
+    "classify",
+    "classify_direction",
+    "classify_lateral",
+    "classify_longitudinal",
+    "classify_pair",
+    "heading_difference_deg",
+    "hv_radius_m",
+    "relative_position",
+]
+
+Point = tuple[float, float]
+
+
+class Longitudinal(enum.Enum):
+    """Eq. (tc_longi): the sign of the longitudinal offset along the HV path."""
+
+    AHEAD = "ahead"
+    BEHIND = "behind"
+
+
+class Lateral(enum.Enum):
+    """Eq. (tc_lateral): the lane the RV is in, relative to the HV's lane."""
+
+    FAR_LEFT = "far_left"
+    LEFT = "left"
+    ON_CENTRE = "on_centre"
+    RIGHT = "right"
+    FAR_RIGHT = "far_right"
+
+
+class Direction(enum.Enum):
+    """Eq. (tc_heading): travel direction relative to the lane.
+
+    ``NOT_CLASSIFIED`` is the paper's own "else, not classified" case: heading
+    differences strictly between ``delta_phi_ongoing`` and ``delta_phi_oncoming``
+    (with the default 45/135 deg thresholds this is crossing or turning traffic).
+    """
+
+    ONGOING = "ongoing"
+    ONCOMING = "oncoming"
+    NOT_CLASSIFIED = "not_classified"
+
+
+@dataclass(frozen=True, slots=True)
+class ClassifyConfig:
+    """Thresholds of Eqs. (tc_lateral) and (tc_heading)."""
+
+    #: Lane width w_lane in metres.  The paper gives no value; 3.6 m is the project's
+    #: DESIGN.md default ("lane width 3.6 m (assumed)"), a typical (US 12 ft) lane.
+    w_lane: float = 3.6
+    #: Delta phi_ongoing in degrees.  Not given in the paper: our choice.  45 deg splits
+    #: the circle into quadrants, so "ongoing" is within half a right angle of the lane.
+    delta_phi_ongoing: float = 45.0
+    #: Delta phi_oncoming in degrees.  Not given in the paper: our choice, symmetric with
+    #: delta_phi_ongoing (within 45 deg of the opposite direction).
+    delta_phi_oncoming: float = 135.0
+
+    def __post_init__(self) -> None:
+        if not (self.w_lane > 0.0 and math.isfinite(self.w_lane)):
+            raise ValueError(f"w_lane must be positive and finite, got {self.w_lane}")
+        if not (0.0 <= self.delta_phi_ongoing <= self.delta_phi_oncoming <= 180.0):
+            raise ValueError(
+                "need 0 <= delta_phi_ongoing <= delta_phi_oncoming <= 180, got "
+                f"{self.delta_phi_ongoing}, {self.delta_phi_oncoming}"
+            )
+
+
+@dataclass(frozen=True, slots=True)
+class PathPoint:
+    """An RV position in HV path coordinates.
+
+    ``s``: signed arc length along the HV path (m, positive ahead); ``d``: signed offset
+    from the path (m, positive to the right); ``heading_deg``: heading of the HV path at
+    the closest point (the paper's phi_lane there).
+    """
+
+    s: float
+    d: float
+    heading_deg: float
+
+
+@dataclass(frozen=True, slots=True)
+class Zone:
+    """The classification of one RV position; ``s``/``d`` as in :class:`PathPoint`.
+
+    ``heading_diff_deg`` is ``|phi_RV - phi_lane|`` wrapped to ``[0, 180]``.
+    """
+
+    longitudinal: Longitudinal
+    lateral: Lateral
+    direction: Direction
+    s: float
+    d: float
+    heading_diff_deg: float
+
+
+def hv_radius_m(speed_mps: float, yaw_rate_deg_s: float) -> float:
+    """Signed radius of curvature ``R = v / omega`` of the HV's predicted path, metres.
+
+    ``yaw_rate_deg_s`` is positive clockwise (J2735), so positive ``R`` is a right turn.
+    A zero yaw rate, or a (near) standstill with no meaningful path, gives ``inf``
+    (straight).
+    """
+    omega = math.radians(yaw_rate_deg_s)
+    if omega == 0.0 or abs(speed_mps) < 1e-3 or not math.isfinite(omega):
+        return math.inf
+    return speed_mps / omega
+
+
+@dataclass(frozen=True, slots=True)
+class HostPath:
+    """The HV's path: current pose, predicted arc ahead and optional history behind.
+
+    ``radius_m`` is the signed radius of curvature (positive = turning right, ``inf`` =
+    straight; see :func:`hv_radius_m`).  ``history`` is the HV's path-history polyline in
+    ENU metres, **most recent first**; the current position is prepended automatically
+    when it is not already the first point.
+    """
+
+    x: float
+    y: float
+    heading_deg: float
+    radius_m: float = math.inf
+    history: tuple[Point, ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.radius_m == 0.0 or math.isnan(self.radius_m):
+            raise ValueError(f"radius_m must be non-zero (inf for straight), got {self.radius_m}")
+        object.__setattr__(
+            self, "history", tuple((float(px), float(py)) for px, py in self.history)
+        )
+
+    @classmethod
+    def from_motion(
+        cls,
+        x: float,
+        y: float,
+        heading_deg: float,
+        speed_mps: float,
+        yaw_rate_deg_s: float,
+        history: Sequence[Point] = (),
+    ) -> HostPath:
+        """A host path from the HV state: ``R = v / omega`` (see :func:`hv_radius_m`)."""
+        return cls(x, y, heading_deg, hv_radius_m(speed_mps, yaw_rate_deg_s), tuple(history))
+
+    @property
+    def curvature(self) -> float:
+        """Signed curvature ``1 / R`` in 1/m (0 when straight, positive turning right)."""
+        return 0.0 if math.isinf(self.radius_m) else 1.0 / self.radius_m
+
+    def _local(self, rv_xy: Point) -> Point:
+        """RV position in the HV's straight frame: (u forward, v right), metres."""
+        h = math.radians(self.heading_deg)
+        sh, ch = math.sin(h), math.cos(h)
+        dx, dy = rv_xy[0] - self.x, rv_xy[1] - self.y
+        # forward = (sin h, cos h); right = (cos h, -sin h) (forward turned 90 deg cw).
+        return dx * sh + dy * ch, dx * ch - dy * sh
+
+    def _on_arc(self, u: float, v: float) -> PathPoint:
+        """Project (u, v) onto the constant-curvature path through the HV.
+
+        With curvature k the path is ``u = sin(k s) / k, v = (1 - cos(k s)) / k``; its
+        centre is at ``(0, 1/k)``.  The closest point on the circle has turning angle
+        ``alpha = atan2(k u, 1 - k v)``, so ``s = alpha / k``, and the signed radial offset
+        is ``d = R - sign(R) * rho`` (rho = distance to the centre), written in a form that
+        is exact as k -> 0: ``d = (2 v - k (u^2 + v^2)) / (1 + hypot(k u, 1 - k v))``.
+        For k = 0 this is ``s = u, d = v``.  The sign of ``s`` follows the sign of ``u``
+        (the paper's Xrel >= 0 test in the HV's tangent frame); arc lengths are limited to
+        half a turn (``|s| <= pi |R|``).
+        """
+        k = self.curvature
+        if k == 0.0:
+            return PathPoint(u, v, self.heading_deg % 360.0)
+        alpha = math.atan2(k * u, 1.0 - k * v)
+        s = math.copysign(abs(alpha) / abs(k), 1.0 if u >= 0.0 else -1.0)
+        d = (2.0 * v - k * (u * u + v * v)) / (1.0 + math.hypot(k * u, 1.0 - k * v))
+        return PathPoint(s, d, (self.heading_deg + math.degrees(k * s)) % 360.0)
+
+    def _on_history(self, rv_xy: Point) -> PathPoint | None:
+        """Project onto the history polyline (behind the HV); None if it has no length.
+
+        Arc length runs back from the HV (so ``s <= 0``), the offset is perpendicular to
+        the closest segment, positive to the right of the direction of travel (which is
+        from older to newer points).  Beyond the oldest point the last segment is extended.
+        """
+        pts: list[Point] = [(self.x, self.y)]
+        for p in self.history:
+            if p != pts[-1]:
+                pts.append(p)
+        if len(pts) < 2:
+            return None
+        px, py = rv_xy
+        best: tuple[float, float, float, float] | None = None  # (dist2, s, d, heading)
+        walked = 0.0
+        last = len(pts) - 2
+        for i in range(len(pts) - 1):
+            (nx, ny), (ox, oy) = pts[i], pts[i + 1]  # newer, older
+            bx, by = ox - nx, oy - ny  # backwards along the path
+            seg = math.hypot(bx, by)
+            t = ((px - nx) * bx + (py - ny) * by) / (seg * seg)
+            t = max(t, 0.0) if i == last else min(max(t, 0.0), 1.0)
+            qx, qy = nx + t * bx, ny + t * by
+            fx, fy = -bx / seg, -by / seg  # direction of travel
+            ex, ey = px - qx, py - qy
+            dist2 = ex * ex + ey * ey
+            if best is None or dist2 < best[0]:
+                # right of travel = (fy, -fx); at a vertex keep the Euclidean distance
+                side = ex * fy - ey * fx
+                d = math.copysign(math.sqrt(dist2), side) if side != 0.0 else 0.0
+                best = (dist2, -(walked + t * seg), d, float(enu_heading_deg(fx, fy)))
+            walked += seg
+        assert best is not None
+        return PathPoint(best[1], best[2], best[3])
+
+    def project(self, rv_xy: Point) -> PathPoint:
+        """The RV position in path coordinates (s, d) with the path heading there.
+
+        Ahead (``u >= 0`` in the HV tangent frame): the predicted arc.  Behind: the history
+        polyline if given, else the arc continued backwards.  An RV whose closest history
+        point is the HV itself (beside it) keeps its tangent-frame coordinates.
+        """
+        u, v = self._local(rv_xy)
+        if u >= 0.0 or not self.history:
+            return self._on_arc(u, v)
+        on_history = self._on_history(rv_xy)
+        if on_history is None or on_history.s >= 0.0:
+            return self._on_arc(u, v)
+        return on_history
+
+    def to_path_frame(self, rv_xy: Point) -> tuple[float, float]:
+        """``(s, d)``: arc length along the HV path (m, + ahead), offset (m, + right)."""
+        p = self.project(rv_xy)
+        return p.s, p.d
+
+
+def relative_position(
+    hv_xy: Point,
+    hv_heading_deg: float,
+    rv_xy: Point,
+    radius_m: float = math.inf,
+    history: Sequence[Point] = (),
+) -> tuple[float, float]:
+    """``(longitudinal_m, lateral_m)`` of the RV along the HV path; lateral positive right.
+
+    With the defaults (straight, no history) it is the ENU offset rotated into the HV
+    frame.  See :class:`HostPath` for the curved and path-history cases.
+    """
+    host = HostPath(hv_xy[0], hv_xy[1], hv_heading_deg, radius_m, tuple(history))
+    return host.to_path_frame(rv_xy)
+
+
+def classify_longitudinal(s: float) -> Longitudinal:
+    """Eq. (tc_longi): Ahead if ``Xrel >= 0`` else Behind (``Xrel`` = ``s``)."""
+    return Longitudinal.AHEAD if s >= 0.0 else Longitudinal.BEHIND
+
+
+def classify_lateral(d: float, w_lane: float) -> Lateral:
+    """Eq. (tc_lateral) with ``ld = -d`` (``d`` positive right, the paper's ``ld`` left).
+
+    On Centre for ``|d| <= 0.5 w``; Left/Right for ``0.5 w < |d| <= 1.5 w``; Far beyond.
+    """
+    ld = -d
+    if ld > 1.5 * w_lane:
+        return Lateral.FAR_LEFT
+    if ld > 0.5 * w_lane:
+        return Lateral.LEFT
+    if ld >= -0.5 * w_lane:
+        return Lateral.ON_CENTRE
+    if ld >= -1.5 * w_lane:
+        return Lateral.RIGHT
+    return Lateral.FAR_RIGHT
+
+
+def heading_difference_deg(rv_heading_deg: float, lane_heading_deg: float) -> float:
+    """``|phi_RV - phi_lane|`` as the smallest angle, in ``[0, 180]`` (359 vs 1 -> 2)."""
+    return abs(float(heading_diff_deg(rv_heading_deg, lane_heading_deg)))
+
+
+def classify_direction(diff_deg: float, config: ClassifyConfig) -> Direction:
+    """Eq. (tc_heading) on ``diff_deg = |phi_RV - phi_lane|`` in ``[0, 180]``."""
+    if diff_deg <= config.delta_phi_ongoing:
+        return Direction.ONGOING
+    if diff_deg >= config.delta_phi_oncoming:
+        return Direction.ONCOMING
+    return Direction.NOT_CLASSIFIED
+
+
+_DEFAULT = ClassifyConfig()
+
+
+def classify(
+    host: HostPath,
+    rv_xy: Point,
+    rv_heading_deg: float,
+    config: ClassifyConfig = _DEFAULT,
+) -> Zone:
+    """Classify one RV position: Eqs. (tc_longi), (tc_lateral), (tc_heading) on path coords."""
+    p = host.project(rv_xy)
+    diff = heading_difference_deg(rv_heading_deg, p.heading_deg)
+    return Zone(
+        longitudinal=classify_longitudinal(p.s),
+        lateral=classify_lateral(p.d, config.w_lane),
+        direction=classify_direction(diff, config),
+        s=p.s,
+        d=p.d,
+        heading_diff_deg=diff,
+    )
+
+
+def classify_pair(
+    host: HostPath,
+    current_xy: Point,
+    current_heading_deg: float,
+    predicted_xy: Point,
+    predicted_heading_deg: float,
+    config: ClassifyConfig = _DEFAULT,
+    predicted_host: HostPath | None = None,
+) -> tuple[Zone, Zone]:
+    """Zones of an RV's current and predicted positions (the CA-TC's current + forecast).
+
+    The paper's example: "the local map is showing RV1 as behind, but the CAM is
+    predicting RV1 will be behind right", so RV1 is also handed to LCW and BSW.  The
+    predicted position is classified against ``predicted_host`` (the HV's own predicted
+    path at that time) when given, else against the current ``host``.
+    """
+    now = classify(host, current_xy, current_heading_deg, config)
+    target_host = predicted_host if predicted_host is not None else host
+    later = classify(target_host, predicted_xy, predicted_heading_deg, config)
+    return now, later

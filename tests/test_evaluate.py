@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import subprocess
@@ -123,7 +124,9 @@ def test_cli_evaluate_and_train_bank_on_real_data(tmp_path):
         capture_output=True, text=True, timeout=300, check=False)
     assert out.returncode == 0, out.stderr
     assert "bank before clustering" in out.stdout
-    assert len(KernelBank.from_json(bank.read_text())) <= 4
+    trained = KernelBank.from_json(bank.read_text())
+    assert len(trained) <= 4
+    assert trained.meta["trained_on"] == {data.name: hashlib.sha256(data.read_bytes()).hexdigest()}
     bad = subprocess.run([sys.executable, "-m", "captures.cli", "evaluate", "--dataset",
                           str(tmp_path / "missing.csv")], capture_output=True, text=True,
                          timeout=60, check=False)

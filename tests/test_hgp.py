@@ -235,3 +235,18 @@ def test_predictor_uses_the_cache_only_on_regular_full_windows():
         q.update(o)
     b = q.predict(3.5)
     assert (a.x, a.y) == (pytest.approx(b.x, abs=1e-9), pytest.approx(b.y, abs=1e-9))
+
+
+def test_regular_cache_belongs_to_its_bank():
+    """Two banks never share cached factors, even if one is created after the other is gone."""
+    obs = drive(30, v0=12.0, a=0.5, yaw=3.0)
+    tau = np.arange(-29, 1) * 0.1
+    p1 = HgpPredictor(BANK)
+    other = KernelBank(BANK.speed * 2.0, BANK.heading * 2.0)
+    p2 = HgpPredictor(other)
+    for o in obs:
+        p1.update(o)
+        p2.update(o)
+    c1, c2 = p1._regular_cache(tau), p2._regular_cache(tau)
+    assert c1 is not c2
+    assert not np.allclose(c1[0].Kinv, c2[0].Kinv)

@@ -24,11 +24,16 @@ def _split(spec: str) -> tuple[str | None, Path]:
 
 def load(spec: str) -> list[MobilityTable]:
     """Every trip in ``spec`` (a file, a directory of files, optionally ``KIND:`` first)."""
+    return [table for _, tables in load_files(spec) for table in tables]
+
+
+def load_files(spec: str) -> list[tuple[Path, list[MobilityTable]]]:
+    """Like :func:`load`, grouped by the file each trip came from (only files that parsed)."""
     kind, path = _split(spec)
     if not path.exists():
         raise DatasetError(f"dataset {spec!r}: no such file or directory")
     files = sorted(p for p in path.iterdir() if p.is_file()) if path.is_dir() else [path]
-    tables: list[MobilityTable] = []
+    out: list[tuple[Path, list[MobilityTable]]] = []
     for f in files:
         try:
             text = f.read_text()
@@ -44,9 +49,9 @@ def load(spec: str) -> list[MobilityTable]:
             raise DatasetError(f"dataset {f}: unknown format; name it as KIND:PATH with KIND "
                                f"in {', '.join(KINDS)}")
         try:
-            tables.extend(parse(k, text, f.stem))
+            out.append((f, parse(k, text, f.stem)))
         except ValueError as err:
             raise DatasetError(f"dataset {f}: {err}") from None
-    if not tables:
+    if not any(tables for _, tables in out):
         raise DatasetError(f"dataset {spec!r}: no trips found")
-    return tables
+    return out

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from captures.datasets import DatasetError, load
+from captures.datasets import DatasetError, load_files
 from captures.progress import Progress
 from catc import __version__
 from catc.predict.bank import KernelBank
@@ -49,21 +49,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _digest(specs: list[str]) -> dict[str, str]:
-    """SHA-256 of every file behind the specs, so a bank names exactly what it came from."""
-    out = {}
-    for spec in specs:
-        path = Path(spec.split(":", 1)[1] if ":" in spec and not Path(spec).exists() else spec)
-        for f in sorted(path.iterdir()) if path.is_dir() else [path]:
-            if f.is_file() and f.suffix != ".md":
-                out[f.name] = hashlib.sha256(f.read_bytes()).hexdigest()
-    return out
+def _digest(loaded: list[tuple[Path, list]]) -> dict[str, str]:
+    """SHA-256 of every file the trips came from, so a bank names exactly what it came from."""
+    return {f.name: hashlib.sha256(f.read_bytes()).hexdigest() for f, _ in loaded}
 
 
 def run(args: argparse.Namespace) -> int:
     try:
-        tables = [t for spec in args.dataset for t in load(spec)]
-        holdout = [t for spec in args.holdout for t in load(spec)]
+        train_files = [item for spec in args.dataset for item in load_files(spec)]
+        holdout_files = [item for spec in args.holdout for item in load_files(spec)]
     except DatasetError as err:
         print(f"captures train-bank: {err}", file=sys.stderr)
         return 2
@@ -71,6 +65,8 @@ def run(args: argparse.Namespace) -> int:
         print("captures train-bank: need --tw >= 3 and positive --pte-th, --horizon, --cluster",
               file=sys.stderr)
         return 2
+    tables = [t for _, ts in train_files for t in ts]
+    holdout = [t for _, ts in holdout_files for t in ts]
     cfg = TrainConfig(tw=args.tw, pte_th=args.pte_th, horizon_s=args.horizon)
     tracks = [tr for t in tables for tr in t.tracks.values()]
     print(f"training on {len(tables)} trips, {len(tracks)} tracks, "
@@ -101,8 +97,8 @@ def run(args: argparse.Namespace) -> int:
     meta = {
         "command": "captures train-bank " + " ".join(shlex.quote(a) for a in sys.argv[2:]),
         "catc_version": __version__,
-        "trained_on": _digest(args.dataset),
-        "holdout": _digest(args.holdout),
+        "trained_on": _digest(train_files),
+        "holdout": _digest(holdout_files),
         "params": {"tw": cfg.tw, "pte_th": cfg.pte_th, "horizon_s": cfg.horizon_s,
                    "cluster": args.cluster,
                    "hgp": {k: (None if isinstance(v, float) and math.isinf(v) else v)

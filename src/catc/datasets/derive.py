@@ -18,7 +18,7 @@ import numpy.typing as npt
 from scipy.signal import savgol_filter
 
 from catc.geo import enu_heading_deg
-from catc.mobility import DT
+from catc.mobility import DT, Track
 
 __all__ = [
     "ACCEL_METHOD",
@@ -138,3 +138,18 @@ def yaw_rate_from_heading(heading_deg: npt.ArrayLike, *, window: int = WINDOW) -
     """
     unwrapped = np.unwrap(np.asarray(heading_deg, dtype=np.float64), period=360.0)
     return _derivative(unwrapped, window)
+
+
+def track(vehicle_id: str, t: Array, position: tuple[Array, ...], speed: Array,
+          accel: Array | None, provenance: dict[str, str],
+          size: tuple[float, float] = (float("nan"), float("nan"))) -> Track:
+    """A :class:`Track` from ``position`` = (x, y, lat, lon, elev) and the measured speed:
+    heading from the track, yaw rate from the heading, and the acceleration from the speed
+    unless the dataset gives it (``accel``)."""
+    x, y, lat, lon, elev = position
+    heading = heading_from_track(x, y, speed)
+    return Track(
+        vehicle_id=vehicle_id, t=t, x=x, y=y, lat=lat, lon=lon, elev=elev, speed=speed,
+        heading=heading, accel=accel_from_speed(speed) if accel is None else accel,
+        yaw_rate=yaw_rate_from_heading(heading), length=float(size[0]),
+        width=float(size[1]), provenance=provenance)

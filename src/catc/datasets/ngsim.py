@@ -118,23 +118,8 @@ def _track(
     x, y = road_to_enu(*road)
     lat, lon, elev = frame.to_geodetic(x, y, np.zeros_like(x))
     speed, accel = motion
-    heading = derive.heading_from_track(x, y, speed)
-    return Track(
-        vehicle_id=vehicle_id,
-        t=t,
-        x=x,
-        y=y,
-        lat=lat,
-        lon=lon,
-        elev=elev,
-        speed=speed,
-        heading=heading,
-        accel=accel,
-        yaw_rate=derive.yaw_rate_from_heading(heading),
-        length=float(size[0]),
-        width=float(size[1]),
-        provenance={**_PROVENANCE, **provenance},
-    )
+    return derive.track(vehicle_id, t, (x, y, lat, lon, elev), speed, accel,
+                        {**_PROVENANCE, **provenance}, size)
 
 
 def _vehicle_id(cell: str) -> str:

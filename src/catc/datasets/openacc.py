@@ -92,20 +92,9 @@ def _track(vehicle_id: str, t: np.ndarray, data: np.ndarray, gaps: int, frame: E
     """A track from (speed, lat, lon, alt) columns with ``gaps`` interpolated samples."""
     speed, lat, lon, alt = data.T
     x, y, _ = frame.to_enu(lat, lon, alt)
-    heading = derive.heading_from_track(x, y, speed)
-    return Track(
-        vehicle_id=vehicle_id,
-        t=t,
-        x=x,
-        y=y,
-        lat=lat,
-        lon=lon,
-        elev=alt,
-        speed=speed,
-        heading=heading,
-        accel=derive.accel_from_speed(speed),
-        yaw_rate=derive.yaw_rate_from_heading(heading),
-        provenance={
+    return derive.track(
+        vehicle_id, t, (x, y, lat, lon, alt), speed, None,
+        {
             **_PROVENANCE,
             "gaps": f"{gaps} missing samples linearly interpolated (runs <= 0.5 s)",
         },

@@ -54,6 +54,7 @@ changed PTE95 by under 4 % either way at 5–10 times the cost (docs/hgp.md).
 from __future__ import annotations
 
 import math
+import weakref
 from collections import deque
 from dataclasses import dataclass
 
@@ -293,8 +294,11 @@ def _read(f: _Forecast, tau: float) -> Prediction:
                       lerp(f.var_x), lerp(f.var_y), f.source[k + 1])
 
 
-#: Regular-grid selection caches, keyed by bank identity and the noise configuration.
-_REGULAR_CACHE: dict[tuple, tuple[RegularSlopeBank, RegularSlopeBank]] = {}
+#: Regular-grid selection caches per bank (held weakly: a bank's factors go with it), then
+#: per window length and noise configuration.
+_REGULAR_CACHE: weakref.WeakKeyDictionary[
+    KernelBank, dict[tuple, tuple[RegularSlopeBank, RegularSlopeBank]]
+] = weakref.WeakKeyDictionary()
 
 
 class _WindowPredictor:
@@ -353,6 +357,8 @@ class HgpPredictor(_WindowPredictor):
         return _read(f, tau)
 
     def _window_len(self) -> int:
+        if math.isinf(self.config.window_s):  # the default: no time cap, no per-tick scan
+            return len(self._obs)
         last = self._obs[-1].t
         return sum(1 for o in self._obs if last - o.t <= self.config.window_s + 1e-9)
 
@@ -373,10 +379,11 @@ class HgpPredictor(_WindowPredictor):
         c = self.config
         if len(tau) != c.tw or np.max(np.abs(np.diff(tau) - DT)) > 1e-6:
             return None
-        key = (id(self.bank), c.tw, c.noise_speed, c.noise_heading, c.noise_accel, c.noise_yaw)
-        cache = _REGULAR_CACHE.get(key)
+        key = (c.tw, c.noise_speed, c.noise_heading, c.noise_accel, c.noise_yaw)
+        per_bank = _REGULAR_CACHE.setdefault(self.bank, {})
+        cache = per_bank.get(key)
         if cache is None:
-            cache = _REGULAR_CACHE[key] = (
+            cache = per_bank[key] = (
                 RegularSlopeBank(self.bank.speed, c.tw, c.noise_speed, c.noise_accel),
                 RegularSlopeBank(self.bank.heading, c.tw, c.noise_heading, c.noise_yaw))
         return cache

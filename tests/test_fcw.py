@@ -24,7 +24,7 @@ from catc.apps.fcw import (
     FcwEvent,
     FcwMonitor,
     FcwRange,
-    G,
+    required_deceleration,
     should_warn,
     warning_range,
 )
@@ -52,17 +52,57 @@ def test_case1_rv_stationary() -> None:
     assert r.closing and r.active
 
 
-def test_case1_with_default_config() -> None:
-    # Defaults: t_d = 1.5 s, a_req = -0.55 g = -0.55 * 9.80665 = -5.3936575 m/s^2.
-    # BOR = 625 / (2 * 5.3936575) = 625 / 10.787315 = 57.93842...
-    # delay = 25 * 1.5 = 37.5 ;  r_w = 95.43842...
+def test_default_config_is_camp_required_deceleration_model() -> None:
+    # Defaults: t_d = 2.05 s, a_req from the CAMP RDM (ft/s^2 coefficients x 0.3048).
+    # HV 25 m/s constant, RV stopped: v_HVp = 25, v_RVp = 0, closing 25, RV not moving:
+    #   a_req = -5.308*0.3048 - 0.086*25 = -1.6178784 - 2.15 = -3.7678784
+    #   BOR (case 1) = 625 / (2 * 3.7678784) = 82.93792...
+    #   delay = 25 * 2.05 = 51.25 ;  r_w = 134.18792...
     cfg = FcwConfig()
-    assert cfg.t_d == 1.5
-    assert cfg.a_req == pytest.approx(-5.3936575, abs=1e-12)
+    assert cfg.t_d == 2.05 and cfg.a_req is None
     r = warning_range(25.0, 0.0, 0.0, 0.0)
-    assert r.bor == pytest.approx(625.0 / 10.787315, abs=TOL)
-    assert r.r_w == pytest.approx(625.0 / 10.787315 + 37.5, abs=TOL)
-    assert r.bor == pytest.approx(57.93842, abs=1e-5)
+    assert r.case == 1
+    assert r.a_req == pytest.approx(-3.7678784, abs=TOL)
+    assert r.bor == pytest.approx(625.0 / 7.5357568, abs=TOL)
+    assert r.r_w == pytest.approx(134.18792, abs=1e-5)
+
+
+def test_camp_rdm_moving_lead_case2() -> None:
+    # HV 25, RV 15 m/s, both constant, default config.  closing = 10, RV moving:
+    #   a_req = -1.6178784 + 2.570*0.3048 - 0.086*10 = -1.6178784 + 0.783336 - 0.86
+    #         = -1.6945424
+    #   BOR (case 2) = 10^2 / (-2 (a_req - 0)) = 100 / 3.3890848 = 29.50649...
+    #   delay = 10 * 2.05 = 20.5 ;  r_w = 50.00649...
+    r = warning_range(25.0, 0.0, 15.0, 0.0)
+    assert r.case == 2
+    assert r.a_req == pytest.approx(-1.6945424, abs=TOL)
+    assert r.bor == pytest.approx(100.0 / 3.3890848, abs=TOL)
+    assert r.r_w == pytest.approx(50.00649, abs=1e-5)
+
+
+def test_camp_rdm_braking_lead_case3() -> None:
+    # HV 25 m/s constant, RV 20 m/s braking at -3 m/s^2, default config.
+    #   v_RVp = 20 - 3*2.05 = 13.85 ; closing = 25 - 13.85 = 11.15
+    #   a_req = -1.6178784 + 0.685*(-3) + 0.783336 - 0.086*11.15 = -3.8484424
+    #   RV stops first: 13.85/3 = 4.62 s < 25/3.8484424 = 6.50 s -> case 3
+    #   BOR = 625/(2*3.8484424) - 13.85^2/(2*3) = 81.20160... - 31.97042 = 49.23118...
+    #   delay = 5*2.05 + 1/2 (0 + 3) 2.05^2 = 10.25 + 6.30375 = 16.55375
+    r = warning_range(25.0, 0.0, 20.0, -3.0)
+    assert r.case == 3
+    assert r.a_req == pytest.approx(-3.8484424, abs=TOL)
+    want_bor = 625.0 / (2 * 3.8484424) - 13.85**2 / 6.0
+    assert r.bor == pytest.approx(want_bor, abs=TOL)
+    assert r.r_w == pytest.approx(want_bor + 16.55375, abs=TOL)
+
+
+@pytest.mark.parametrize(("v_rv", "a_rv", "closing"),
+                         [(0.0, 5.0, -30.0), (10.0, 3.0, -20.0), (30.0, 0.0, 0.0)])
+def test_camp_rdm_stays_braking_outside_its_domain(v_rv, a_rv, closing) -> None:
+    # An accelerating lead or an opening gap is outside the fitted domain: clamped to the
+    # model's value at a_RV = 0 and closing 0, which is still braking.
+    a = required_deceleration(v_rv, a_rv, closing)
+    assert a == pytest.approx(-1.6178784 + (0.783336 if v_rv > 0 else 0.0), abs=TOL)
+    assert a < -0.8
 
 
 def test_case2_rv_constant_speed() -> None:
@@ -269,7 +309,6 @@ def test_range_is_frozen() -> None:
     assert isinstance(r, FcwRange)
     with pytest.raises(dataclasses.FrozenInstanceError):
         r.r_w = 1.0  # type: ignore[misc]
-    assert G == 9.80665
 
 
 # ------------------------------------------------------------------------ monitor

@@ -27,12 +27,24 @@ ranges in metres, times in seconds.
 
 Choices this module makes where the paper is silent (all documented, all tested):
 
-* **a_req** is a constant :attr:`FcwConfig.a_req` (default -0.55 g).  The CAMP
-  Required Deceleration Model (Kiefer et al.) makes a_req depend on the lead
-  vehicle's deceleration, whether it moves and the closing speed; its coefficients
-  could not be found in the sources available here, so it is not implemented.
-  ``a_req >= 0`` is a configuration error (:class:`ValueError`): the formulas
-  divide by ``-2 a_req`` and need a braking HV.
+* **a_req** is the CAMP Required Deceleration Model (Kiefer et al. 1999, DOT HS 808 964,
+  validated in Kiefer et al. 2003), a regression on last-second braking in feet and
+  seconds::
+
+      a_req = -5.308 + 0.685 a_RV + 2.570 [v_RV > 0] - 0.086 (v_HVp - v_RVp)   (ft/s^2)
+
+  i.e. in SI ``-1.6179 + 0.685 a_RV + 0.7833 [v_RV > 0] - 0.086 (v_HVp - v_RVp)`` m/s^2
+  (equivalently -0.165 g + 0.685 a_RV + 0.080 g [moving] - 0.00877 g·s/m · closing).
+  Sources found here: the form and coefficients as quoted by the SAVE-IT task 9 report
+  (Burgett / CAMP comparison, "in units of ft and s") and the CAMP Linear FCW
+  implementation of Y. P. Fallah (2015, a co-author of the reference paper), which
+  also uses the closing speed after the delay, ``v_HVp - v_RVp``.  Two domain limits,
+  ours: the lead-acceleration input is ``min(a_RV, 0)`` and the closing speed
+  ``max(0, v_HVp - v_RVp)`` (the model was fitted on stopped, constant-speed and
+  braking leads that the HV closed on); this keeps ``a_req <= -0.835 m/s^2 < 0`` so
+  the BOR formulas never divide by zero.  ``FcwConfig(a_req=...)`` replaces the model
+  with a constant (the paper's formulas then use that value), which hand-computed
+  tests use.
 * **Predicted speeds are clamped at 0**: ``v_HVp = max(0, v_HV + a_HV t_d)`` (same
   for the RV).  A braking vehicle stops; it does not reverse within ``t_d``.  The
   delay term of (FCW-1) is used exactly as printed (not clamped).
@@ -71,13 +83,10 @@ __all__ = [
     "FcwEvent",
     "FcwMonitor",
     "FcwRange",
-    "G",
+    "required_deceleration",
     "should_warn",
     "warning_range",
 ]
-
-#: Standard gravity, m/s^2 (ISO 80000-3), used only to express a_req in g.
-G = 9.80665
 
 
 @dataclass(frozen=True)
@@ -85,15 +94,13 @@ class FcwConfig:
     """Parameters of the CAMP Linear FCW; every default is justified inline."""
 
     # Driver + brake-system reaction delay t_d (s), (FCW-1).  The paper names t_d but
-    # gives no value.  1.5 s is a common engineering value for an alerted driver's
-    # brake reaction plus brake build-up; NOT taken from Kiefer 2003 (not verified).
-    t_d: float = 1.5
+    # gives no value; 2.05 s is the total delay (driver response + brake system) in the
+    # CAMP Linear implementation of Y. P. Fallah (2015), a co-author of the paper.
+    t_d: float = 2.05
     # Deceleration the HV driver is assumed to apply after t_d (m/s^2, < 0), (FCW-2).
-    # Paper: "modeled in [Kiefer 2003] using real data"; that model's coefficients
-    # were not available here, so a constant is used.  -0.55 g (≈ -5.39 m/s²) is a
-    # firm-but-not-maximal braking level, below a dry-road emergency stop (~-0.8 g);
-    # an assumption, not a value read from DOT HS 809 574.
-    a_req: float = -0.55 * G
+    # None (default): the CAMP Required Deceleration Model (module docstring, Kiefer et
+    # al. 1999/2003); a number: that constant instead.
+    a_req: float | None = None
     # RV speed (m/s) at or below which the RV counts as stationary (case 1).  0.0:
     # the paper gives no threshold, and BOR is continuous at v_RV = 0 for a_RV = 0
     # (case 2 reduces to case 1), so no tolerance is needed for the formulas.
@@ -103,15 +110,16 @@ class FcwConfig:
     min_hv_speed: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ("t_d", "a_req", "rv_stationary_speed", "min_hv_speed"):
+        for name in ("t_d", "rv_stationary_speed", "min_hv_speed"):
             if not math.isfinite(getattr(self, name)):
                 raise ValueError(f"FcwConfig.{name} must be finite")
-        if self.a_req >= 0.0:
-            raise ValueError(f"FcwConfig.a_req must be < 0 (braking), got {self.a_req}")
         if self.t_d < 0.0:
             raise ValueError(f"FcwConfig.t_d must be >= 0, got {self.t_d}")
         if self.rv_stationary_speed < 0.0 or self.min_hv_speed < 0.0:
             raise ValueError("FcwConfig speed thresholds must be >= 0")
+        if self.a_req is not None and not (math.isfinite(self.a_req) and self.a_req < 0.0):
+            raise ValueError(f"FcwConfig.a_req must be finite and < 0 (braking), got "
+                             f"{self.a_req}")
 
 
 @dataclass(frozen=True)
@@ -128,7 +136,24 @@ class FcwRange:
     closing: bool  # v_HVp > v_RVp (closing at brake onset)
     active: bool  # False when v_HV <= min_hv_speed (stationary HV): no warning
     t_d: float
-    a_req: float
+    a_req: float  # the a_req used: the CAMP model's value, or the configured constant
+
+
+#: The CAMP Required Deceleration Model's coefficients converted from ft/s^2 (x 0.3048).
+FT = 0.3048
+RDM_INTERCEPT = -5.308 * FT  # m/s^2
+RDM_LEAD = 0.685  # dimensionless (a ratio of accelerations)
+RDM_MOVING = 2.570 * FT  # m/s^2, when the lead vehicle moves
+RDM_CLOSING = 0.086  # 1/s (the same in ft and m)
+
+
+def required_deceleration(v_rv: float, a_rv: float, closing: float) -> float:
+    """The CAMP Required Deceleration Model (module docstring), m/s^2, always < 0.
+
+    ``closing`` is ``v_HVp - v_RVp`` (m/s); ``a_rv`` the RV's acceleration (m/s^2).
+    """
+    return (RDM_INTERCEPT + RDM_LEAD * min(a_rv, 0.0)
+            + (RDM_MOVING if v_rv > 0.0 else 0.0) - RDM_CLOSING * max(closing, 0.0))
 
 
 def _check(name: str, value: float, *, nonneg: bool) -> float:
@@ -156,12 +181,14 @@ def warning_range(
     a_hv = _check("a_hv", a_hv, nonneg=False)
     v_rv = _check("v_rv", v_rv, nonneg=True)
     a_rv = _check("a_rv", a_rv, nonneg=False)
-    t_d, a_req = config.t_d, config.a_req
+    t_d = config.t_d
 
     # Predicted speeds at the end of the delay, clamped at 0 (no reversing).
     v_hvp = max(0.0, v_hv + a_hv * t_d)
     v_rvp = max(0.0, v_rv + a_rv * t_d)
     closing = v_hvp > v_rvp
+    a_req = (config.a_req if config.a_req is not None
+             else required_deceleration(v_rv, a_rv, v_hvp - v_rvp))
 
     if v_rv <= config.rv_stationary_speed:
         case = 1

@@ -355,7 +355,7 @@ def test_ngsim_georeference_and_frame_gap():
 
 
 def test_detect_kind_and_parse_dispatch():
-    assert datasets.KINDS == ("openacc", "ngsim")
+    assert datasets.KINDS == ("openacc", "ngsim", "nyc")
     text = synthetic_openacc()
     assert datasets.detect_kind(text) == "openacc"
     assert [t.name for t in datasets.parse("openacc", text, "s")] == ["s"]

@@ -52,3 +52,5 @@ class MobilityTable:
     tracks: dict[str, Track]
     #: The vehicle a run uses as the host by default (None: the caller must choose).
     default_host: str | None = None
+    #: Reader-specific extras (e.g. an event header, per-sample flags); empty by default.
+    meta: dict = field(default_factory=dict)

@@ -6,12 +6,12 @@ raises :class:`ValueError` with a one-line message on content it cannot use.
 
 from __future__ import annotations
 
-from catc.datasets import ngsim, openacc
+from catc.datasets import ngsim, nyc, openacc
 from catc.mobility import MobilityTable
 
 __all__ = ["KINDS", "detect_kind", "parse"]
 
-KINDS = ("openacc", "ngsim")
+KINDS = ("openacc", "ngsim", "nyc")
 
 
 def detect_kind(text: str) -> str | None:
@@ -19,7 +19,10 @@ def detect_kind(text: str) -> str | None:
 
     OpenACC: the first line starts with ``Date,`` and a ``Vehicle_order`` line follows.
     NGSIM leader/follower pairs: the header starts with ``pair_id,time,``.
+    NYC CV pilot event: a JSON object with ``eventHeader`` and ``bsmList`` keys.
     """
+    if nyc.looks_like(text):
+        return "nyc"
     lines = text.lstrip("\ufeff").splitlines()
     if not lines:
         return None
@@ -36,4 +39,6 @@ def parse(kind: str, text: str, name: str) -> list[MobilityTable]:
         return [openacc.parse(text, name)]
     if kind == "ngsim":
         return ngsim.parse(text, name)
+    if kind == "nyc":
+        return [nyc.parse(text, name)]
     raise ValueError(f"unknown dataset kind {kind!r} (expected one of {', '.join(KINDS)})")

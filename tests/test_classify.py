@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
@@ -22,9 +23,11 @@ from catc.classify import (
     classify,
     classify_direction,
     classify_lateral,
+    classify_many,
     classify_pair,
     hv_radius_m,
     relative_position,
+    trail_offset,
 )
 
 CFG = ClassifyConfig()
@@ -416,3 +419,59 @@ def test_rigid_motion_invariance(
     assert (zm.longitudinal, zm.lateral, zm.direction) == (z.longitudinal, z.lateral, z.direction)
     assert zm.s == pytest.approx(z.s, abs=1e-6)
     assert zm.d == pytest.approx(z.d, abs=1e-6)
+
+
+# --- the vectorised path equals the scalar one --------------------------------------------
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), radius=st.sampled_from([math.inf, 80.0, -150.0, 900.0]),
+       with_history=st.booleans())
+def test_classify_many_equals_classify(seed: int, radius: float, with_history: bool) -> None:
+    rng = np.random.default_rng(seed)
+    history: list[tuple[float, float]] = []
+    if with_history:  # a wiggly path behind an HV at (5, 7) heading 30 deg
+        pts = np.cumsum(rng.normal([-0.5, -0.85], 0.3, size=(12, 2)) * 8.0, axis=0)
+        history = [(5.0 + px, 7.0 + py) for px, py in pts]
+    host = HostPath(5.0, 7.0, 30.0, radius, tuple(history))
+    xs = rng.uniform(-120, 120, 300)
+    ys = rng.uniform(-120, 120, 300)
+    heads = rng.uniform(0, 360, 300)
+    many = classify_many(host, xs, ys, heads, CFG)
+    for i in range(len(xs)):
+        z = classify(host, (xs[i], ys[i]), heads[i], CFG)
+        got = many.zone(i)
+        assert (got.longitudinal, got.lateral, got.direction) == \
+            (z.longitudinal, z.lateral, z.direction), i
+        assert got.s == pytest.approx(z.s, abs=1e-9)
+        assert got.d == pytest.approx(z.d, abs=1e-9)
+        assert got.heading_diff_deg == pytest.approx(z.heading_diff_deg, abs=1e-9)
+
+
+def test_classify_many_on_exact_lane_boundaries() -> None:
+    host = HostPath(0.0, 0.0, 0.0)
+    ds = np.array([-1.5 * W, -0.5 * W, 0.0, 0.5 * W, 1.5 * W, 1.5 * W + 1e-9])
+    many = classify_many(host, ds, np.full(len(ds), 10.0), np.zeros(len(ds)), CFG)
+    for i, d in enumerate(ds):
+        assert many.zone(i).lateral == paper_lateral(-d)
+
+
+# --- lane estimation from an RV's trail ------------------------------------------------------
+
+
+def test_trail_offset_straight_and_curved() -> None:
+    # An RV at (0, 50) heading north, trail straight back to (0, -100).
+    trail = [(0.0, 50.0), (0.0, 0.0), (0.0, -100.0)]
+    s, d, h = trail_offset(trail, (1.0, 10.0))
+    assert (s, d, h) == pytest.approx((40.0, 1.0, 0.0))  # 1 m right of it, 40 m behind
+    assert trail_offset(trail, (0.0, 60.0)) is None  # ahead of the RV
+    assert trail_offset(trail, (0.0, -120.0)) is None  # the trail does not reach back
+    assert trail_offset([(0.0, 0.0)], (1.0, 1.0)) is None
+    # a quarter circle of radius 100 (RV going east at (100, 100) after turning right);
+    # a point at radius 96 on it is 4 m to the right of the trail.
+    arc = [(100 - 100 * math.cos(a), 100 * math.sin(a)) for a in np.linspace(math.pi / 2, 0, 91)]
+    a = math.radians(30.0)
+    s, d, h = trail_offset(arc, (100 - 96 * math.cos(a), 96 * math.sin(a)))
+    assert d == pytest.approx(4.0, abs=0.01)
+    assert h == pytest.approx(30.0, abs=0.6)  # tangent at 30 deg round the turn
+    assert s == pytest.approx(100 * math.radians(60.0), abs=0.05)

@@ -19,10 +19,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from catc.apps.events import AppEvent, WarningMonitor
 from catc.apps.fcw import (
     FcwConfig,
-    FcwEvent,
-    FcwMonitor,
     FcwRange,
     required_deceleration,
     should_warn,
@@ -316,9 +315,9 @@ def test_range_is_frozen() -> None:
 DT = 0.125
 
 
-def feed(mon: FcwMonitor, rv: object, flags: str, t0: float = 0.0) -> list[FcwEvent]:
+def feed(mon: WarningMonitor, rv: object, flags: str, t0: float = 0.0) -> list[AppEvent]:
     """Feed one tick per character ('1' = warn) starting at t0; collect events."""
-    out: list[FcwEvent] = []
+    out: list[AppEvent] = []
     for k, f in enumerate(flags):
         out += mon.update(t0 + k * DT, rv, f == "1")
     return out
@@ -329,17 +328,17 @@ def test_monitor_flicker_within_off_time_keeps_event() -> None:
     # start at t=0.  Gap 1 starts t=0.25, back on at t=0.5 (0.25 s < 0.5 s): no end.
     # Gap 2 starts t=0.875 (index 7); end when t - 0.875 >= 0.5 -> t = 1.375 (index 11).
     # Event: t_start 0.0, t_end 0.875.
-    mon = FcwMonitor()
+    mon = WarningMonitor()
     ev = feed(mon, "A", "110011100000")
-    assert ev == [FcwEvent("start", "A", 0.0), FcwEvent("end", "A", 0.0, 0.875)]
+    assert ev == [AppEvent("start", "A", 0.0), AppEvent("end", "A", 0.0, 0.875)]
 
 
 def test_monitor_end_happens_exactly_at_off_time() -> None:
-    mon = FcwMonitor(off_time=0.5)
+    mon = WarningMonitor(off_time=0.5)
     # on at 0; off from 0.125; at 0.5: 0.375 elapsed -> still open; at 0.625: 0.5 -> end.
-    assert feed(mon, "A", "10000") == [FcwEvent("start", "A", 0.0)]
+    assert feed(mon, "A", "10000") == [AppEvent("start", "A", 0.0)]
     assert mon.open_events() == {"A": 0.0}
-    assert mon.update(0.625, "A", False) == [FcwEvent("end", "A", 0.0, 0.125)]
+    assert mon.update(0.625, "A", False) == [AppEvent("end", "A", 0.0, 0.125)]
     assert mon.open_events() == {}
 
 
@@ -347,27 +346,27 @@ def test_monitor_long_gap_ends_and_new_event_starts_later() -> None:
     # 1 1 0 0 0 0 0 0 1 1 0 0 0 0 0   (15 ticks, t = 0 .. 1.75)
     # event 1: start 0.0; gap from 0.25; end at 0.75 (0.5 elapsed) -> t_end 0.25
     # event 2: start at index 8 -> t = 1.0; gap from 1.25; end at 1.75 -> t_end 1.25
-    mon = FcwMonitor()
+    mon = WarningMonitor()
     ev = feed(mon, 7, "110000001100000")
     assert ev == [
-        FcwEvent("start", 7, 0.0),
-        FcwEvent("end", 7, 0.0, 0.25),
-        FcwEvent("start", 7, 1.0),
-        FcwEvent("end", 7, 1.0, 1.25),
+        AppEvent("start", 7, 0.0),
+        AppEvent("end", 7, 0.0, 0.25),
+        AppEvent("start", 7, 1.0),
+        AppEvent("end", 7, 1.0, 1.25),
     ]
 
 
 def test_monitor_on_ticks_requires_consecutive_warns() -> None:
     # on_ticks = 3: 1 1 0 1 1 1 -> first run of two is dropped; the run starting at
     # index 3 (t = 0.375) completes at index 5 -> start with t_start = 0.375.
-    mon = FcwMonitor(on_ticks=3)
+    mon = WarningMonitor(on_ticks=3)
     ev = feed(mon, "A", "110111")
-    assert ev == [FcwEvent("start", "A", 0.375)]
+    assert ev == [AppEvent("start", "A", 0.375)]
 
 
 def test_monitor_rvs_are_independent() -> None:
-    mon = FcwMonitor()
-    events: list[FcwEvent] = []
+    mon = WarningMonitor()
+    events: list[AppEvent] = []
     a = "1111000000"  # A: start 0.0; off from 0.5; end at 1.0 -> t_end 0.5
     b = "0011111111"  # B: start 0.25; never ends
     for k in range(len(a)):
@@ -375,29 +374,29 @@ def test_monitor_rvs_are_independent() -> None:
         events += mon.update(t, "A", a[k] == "1")
         events += mon.update(t, "B", b[k] == "1")
     assert events == [
-        FcwEvent("start", "A", 0.0),
-        FcwEvent("start", "B", 0.25),
-        FcwEvent("end", "A", 0.0, 0.5),
+        AppEvent("start", "A", 0.0),
+        AppEvent("start", "B", 0.25),
+        AppEvent("end", "A", 0.0, 0.5),
     ]
     assert mon.open_events() == {"B": 0.25}
 
 
 def test_monitor_invalid_parameters() -> None:
     with pytest.raises(ValueError):
-        FcwMonitor(on_ticks=0)
+        WarningMonitor(on_ticks=0)
     with pytest.raises(ValueError):
-        FcwMonitor(off_time=-0.1)
+        WarningMonitor(off_time=-0.1)
 
 
 def test_monitor_end_to_end_with_warning_range() -> None:
     # HV 25 m/s closing on a stopped RV (r_w = 87.5 with C); range shrinks 10 m per
     # tick from 120 m: 120, 110, 100, 90, 80 -> first warn at 80 m (index 4, t=0.5).
-    mon = FcwMonitor()
+    mon = WarningMonitor()
     r = warning_range(25.0, 0.0, 0.0, 0.0, C)
-    events: list[FcwEvent] = []
+    events: list[AppEvent] = []
     for k, rng in enumerate((120.0, 110.0, 100.0, 90.0, 80.0, 70.0)):
         events += mon.update(k * DT, "rv1", should_warn(rng, r))
-    assert events == [FcwEvent("start", "rv1", 0.5)]
+    assert events == [AppEvent("start", "rv1", 0.5)]
 
 
 # ------------------------------------------------------------------------ property

@@ -60,9 +60,13 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import numpy as np
+import numpy.typing as npt
+
 from catc.geo import enu_heading_deg, heading_diff_deg
 
 __all__ = [
+    "LATERAL_CODES",
     "ClassifyConfig",
     "Direction",
     "HostPath",
@@ -70,14 +74,18 @@ __all__ = [
     "Longitudinal",
     "PathPoint",
     "Zone",
+    "ZoneArrays",
     "classify",
     "classify_direction",
     "classify_lateral",
     "classify_longitudinal",
+    "classify_many",
     "classify_pair",
     "heading_difference_deg",
     "hv_radius_m",
+    "lateral_codes",
     "relative_position",
+    "trail_offset",
 ]
 
 Point = tuple[float, float]
@@ -254,35 +262,13 @@ class HostPath:
         Arc length runs back from the HV (so ``s <= 0``), the offset is perpendicular to
         the closest segment, positive to the right of the direction of travel (which is
         from older to newer points).  Beyond the oldest point the last segment is extended.
+        The arithmetic is :func:`_project_history_many` on one point.
         """
-        pts: list[Point] = [(self.x, self.y)]
-        for p in self.history:
-            if p != pts[-1]:
-                pts.append(p)
-        if len(pts) < 2:
+        out = _project_history_many(self, np.array([rv_xy[0]]), np.array([rv_xy[1]]))
+        if out is None:
             return None
-        px, py = rv_xy
-        best: tuple[float, float, float, float] | None = None  # (dist2, s, d, heading)
-        walked = 0.0
-        last = len(pts) - 2
-        for i in range(len(pts) - 1):
-            (nx, ny), (ox, oy) = pts[i], pts[i + 1]  # newer, older
-            bx, by = ox - nx, oy - ny  # backwards along the path
-            seg = math.hypot(bx, by)
-            t = ((px - nx) * bx + (py - ny) * by) / (seg * seg)
-            t = max(t, 0.0) if i == last else min(max(t, 0.0), 1.0)
-            qx, qy = nx + t * bx, ny + t * by
-            fx, fy = -bx / seg, -by / seg  # direction of travel
-            ex, ey = px - qx, py - qy
-            dist2 = ex * ex + ey * ey
-            if best is None or dist2 < best[0]:
-                # right of travel = (fy, -fx); at a vertex keep the Euclidean distance
-                side = ex * fy - ey * fx
-                d = math.copysign(math.sqrt(dist2), side) if side != 0.0 else 0.0
-                best = (dist2, -(walked + t * seg), d, float(enu_heading_deg(fx, fy)))
-            walked += seg
-        assert best is not None
-        return PathPoint(best[1], best[2], best[3])
+        s, d, heading = out
+        return PathPoint(float(s[0]), float(d[0]), float(heading[0]))
 
     def project(self, rv_xy: Point) -> PathPoint:
         """The RV position in path coordinates (s, d) with the path heading there.
@@ -399,3 +385,161 @@ def classify_pair(
     target_host = predicted_host if predicted_host is not None else host
     later = classify(target_host, predicted_xy, predicted_heading_deg, config)
     return now, later
+
+
+# --- vectorised form: every RV of a tick at once ----------------------------------------------
+
+Array = npt.NDArray[np.float64]
+
+#: Lateral classes by code in :class:`ZoneArrays` (``lateral`` index into this tuple).
+LATERAL_CODES = (Lateral.FAR_LEFT, Lateral.LEFT, Lateral.ON_CENTRE, Lateral.RIGHT,
+                 Lateral.FAR_RIGHT)
+#: Direction classes by code.
+DIRECTION_CODES = (Direction.ONGOING, Direction.ONCOMING, Direction.NOT_CLASSIFIED)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class ZoneArrays:
+    """:func:`classify` of many RVs: one entry per RV.
+
+    ``ahead`` is Eq. (tc_longi) as a bool; ``lateral`` and ``direction`` are codes into
+    :data:`LATERAL_CODES` and :data:`DIRECTION_CODES`; ``s``, ``d``, ``lane_heading_deg``
+    and ``heading_diff_deg`` as in :class:`Zone` / :class:`PathPoint`.
+    """
+
+    ahead: npt.NDArray[np.bool_]
+    lateral: npt.NDArray[np.int8]
+    direction: npt.NDArray[np.int8]
+    s: Array
+    d: Array
+    lane_heading_deg: Array
+    heading_diff_deg: Array
+
+    def zone(self, i: int) -> Zone:
+        """Entry ``i`` as a :class:`Zone`."""
+        return Zone(Longitudinal.AHEAD if self.ahead[i] else Longitudinal.BEHIND,
+                    LATERAL_CODES[self.lateral[i]], DIRECTION_CODES[self.direction[i]],
+                    float(self.s[i]), float(self.d[i]), float(self.heading_diff_deg[i]))
+
+
+def _project_arc_many(host: HostPath, u: Array, v: Array) -> tuple[Array, Array, Array]:
+    """:meth:`HostPath._on_arc` for arrays (same formulas, same branch at k = 0)."""
+    k = host.curvature
+    if k == 0.0:
+        return u.copy(), v.copy(), np.full(u.shape, host.heading_deg % 360.0)
+    alpha = np.arctan2(k * u, 1.0 - k * v)
+    s = np.where(u >= 0.0, 1.0, -1.0) * np.abs(alpha) / abs(k)
+    d = (2.0 * v - k * (u * u + v * v)) / (1.0 + np.hypot(k * u, 1.0 - k * v))
+    return s, d, (host.heading_deg + np.degrees(k * s)) % 360.0
+
+
+def _project_history_many(host: HostPath, px: Array, py: Array
+                          ) -> tuple[Array, Array, Array] | None:
+    """:meth:`HostPath._on_history` for arrays: the first closest segment wins, as there."""
+    pts = [(host.x, host.y)]
+    for p in host.history:
+        if p != pts[-1]:
+            pts.append(p)
+    if len(pts) < 2:
+        return None
+    P = np.asarray(pts)
+    n_xy, o_xy = P[:-1], P[1:]  # newer, older end of each segment
+    b = o_xy - n_xy  # backwards along the path
+    seg = np.hypot(b[:, 0], b[:, 1])
+    walked = np.concatenate(([0.0], np.cumsum(seg)[:-1]))
+    ex0 = px[:, None] - n_xy[None, :, 0]
+    ey0 = py[:, None] - n_xy[None, :, 1]
+    t = (ex0 * b[None, :, 0] + ey0 * b[None, :, 1]) / (seg * seg)[None, :]
+    t = np.maximum(t, 0.0)
+    t[:, :-1] = np.minimum(t[:, :-1], 1.0)  # the oldest segment extends beyond its end
+    ex = ex0 - t * b[None, :, 0]
+    ey = ey0 - t * b[None, :, 1]
+    dist2 = ex * ex + ey * ey
+    j = np.argmin(dist2, axis=1)
+    rows = np.arange(len(px))
+    fx, fy = -b[j, 0] / seg[j], -b[j, 1] / seg[j]  # direction of travel
+    exj, eyj = ex[rows, j], ey[rows, j]
+    side = exj * fy - eyj * fx
+    d = np.where(side != 0.0, np.copysign(np.sqrt(dist2[rows, j]), side), 0.0)
+    s = -(walked[j] + t[rows, j] * seg[j])
+    return s, d, np.asarray(enu_heading_deg(fx, fy), dtype=float)
+
+
+def lateral_codes(d: Array, w_lane: float) -> npt.NDArray[np.int8]:
+    """Eq. (tc_lateral) on offsets ``d`` (positive right): codes into :data:`LATERAL_CODES`."""
+    ld = -np.asarray(d, dtype=float)
+    return np.select([ld > 1.5 * w_lane, ld > 0.5 * w_lane, ld >= -0.5 * w_lane,
+                      ld >= -1.5 * w_lane], [0, 1, 2, 3], 4).astype(np.int8)
+
+
+def classify_many(host: HostPath, x: npt.ArrayLike, y: npt.ArrayLike,
+                  heading_deg: npt.ArrayLike, config: ClassifyConfig = _DEFAULT) -> ZoneArrays:
+    """:func:`classify` of every RV position in ``x, y`` (ENU m) with ``heading_deg``.
+
+    Same projection and thresholds as the scalar path (the tests check them against each
+    other entry by entry); vectorised because the OBU classifies hundreds of RVs per tick.
+    """
+    x = np.asarray(x, dtype=float)
+    y = np.asarray(y, dtype=float)
+    rv_heading = np.asarray(heading_deg, dtype=float)
+    h = math.radians(host.heading_deg)
+    sh, ch = math.sin(h), math.cos(h)
+    dx, dy = x - host.x, y - host.y
+    u, v = dx * sh + dy * ch, dx * ch - dy * sh
+    s, d, lane = _project_arc_many(host, u, v)
+    behind = u < 0.0
+    if host.history and behind.any():
+        idx = np.flatnonzero(behind)
+        hist = _project_history_many(host, x[idx], y[idx])
+        if hist is not None:
+            hs, hd, hh = hist
+            use = hs < 0.0
+            sel = idx[use]
+            s[sel], d[sel], lane[sel] = hs[use], hd[use], hh[use]
+    diff = np.abs(np.asarray(heading_diff_deg(rv_heading, lane), dtype=float))
+    lateral = lateral_codes(d, config.w_lane)
+    direction = np.select([diff <= config.delta_phi_ongoing, diff >= config.delta_phi_oncoming],
+                          [0, 1], 2).astype(np.int8)
+    return ZoneArrays(s >= 0.0, lateral, direction, s, d, lane, diff)
+
+
+def trail_offset(trail: Sequence[Point], p: Point) -> tuple[float, float, float] | None:
+    """Where ``p`` lies relative to a vehicle's trail: ``(s, d, heading_deg)`` or None.
+
+    ``trail`` is the vehicle's path history, most recent first, starting at its current
+    position (ENU m).  ``s`` is the arc length from ``p``'s closest point on the trail
+    forward to the vehicle, ``d`` the offset of ``p`` from the trail, positive to the
+    right of the direction of travel, ``heading_deg`` the trail's direction of travel at
+    that closest point (the lane heading there).  None when ``p``'s closest point is the trail's
+    head approached from ahead (``p`` is ahead of the vehicle), its oldest point
+    approached from beyond (the trail does not reach back to ``p``), or the trail has
+    no length.  Used for lane estimation: an HV on the trail of an RV ahead drives
+    where that RV drove (the CAM's "path history ... for lane estimation").
+    """
+    px, py = p
+    best: tuple[float, float, float, float, float] | None = None  # (dist2, s, d, fx, fy)
+    walked = 0.0
+    last = len(trail) - 2
+    for i in range(last + 1):
+        (nx, ny), (ox, oy) = trail[i], trail[i + 1]  # newer, older
+        bx, by = ox - nx, oy - ny
+        seg2 = bx * bx + by * by
+        if seg2 == 0.0:
+            continue
+        seg = math.sqrt(seg2)
+        t = ((px - nx) * bx + (py - ny) * by) / seg2
+        off_head, off_tail = (i == 0 and t < 0.0), (i == last and t > 1.0)
+        t = min(max(t, 0.0), 1.0)
+        ex, ey = px - (nx + t * bx), py - (ny + t * by)
+        dist2 = ex * ex + ey * ey
+        if best is None or dist2 < best[0]:
+            if off_head or off_tail:
+                best = (dist2, math.nan, math.nan, 0.0, 0.0)
+            else:
+                fx, fy = -bx / seg, -by / seg  # direction of travel
+                side = ex * fy - ey * fx
+                best = (dist2, walked + t * seg, math.copysign(math.sqrt(dist2), side), fx, fy)
+        walked += seg
+    if best is None or math.isnan(best[1]):
+        return None
+    return best[1], best[2], float(enu_heading_deg(best[3], best[4]))

@@ -1,1 +1,67 @@
-"""Cooperative safety applications (pure library code: no I/O, no clocks)."""
+"""Cooperative safety applications on the CA-TC's map (pure library code: no I/O, no clocks).
+
+Each application is a function ``app(snapshot, config) -> list[AppWarning]``: the
+conditions that hold at this tick (what FCW accuracy is scored on).  :class:`SafetyApps`
+runs them all on every :class:`catc.cam.MapSnapshot` and turns the per-tick conditions
+into start/end events with one :class:`~catc.apps.events.WarningMonitor` per application
+(hysteresis documented there).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from catc.apps.bsw import BswConfig, blind_spot
+from catc.apps.eebl import EeblConfig, eebl
+from catc.apps.events import AppEvent, AppWarning, WarningMonitor
+from catc.apps.fcw import FcwConfig, forward_collision
+
+__all__ = ["APPS", "AppEvent", "AppWarning", "AppsConfig", "SafetyApps"]
+
+#: Application names, in the order their warnings are listed.
+APPS = ("fcw", "eebl", "bsw", "lcw")
+
+
+@dataclass(frozen=True)
+class AppsConfig:
+    fcw: FcwConfig = field(default_factory=FcwConfig)
+    eebl: EeblConfig = field(default_factory=EeblConfig)
+    bsw: BswConfig = field(default_factory=BswConfig)
+    #: Which applications run.
+    enabled: tuple[str, ...] = APPS
+    #: Hysteresis of every event monitor (see WarningMonitor).
+    on_ticks: int = 1
+    off_time: float = 0.5
+
+    def __post_init__(self) -> None:
+        unknown = set(self.enabled) - set(APPS)
+        if unknown:
+            raise ValueError(f"unknown application(s) {sorted(unknown)}; known: {APPS}")
+
+
+class SafetyApps:
+    """Runs the enabled applications on each snapshot: ``apps(snapshot) -> (warnings,
+    events)``; pass it to :class:`catc.cam.ContextAwareMap` as ``apps``."""
+
+    def __init__(self, config: AppsConfig | None = None) -> None:
+        self.config = config or AppsConfig()
+        c = self.config
+        self.monitors = {a: WarningMonitor(app=a, on_ticks=c.on_ticks, off_time=c.off_time)
+                         for a in c.enabled}
+
+    def __call__(self, snap) -> tuple[list[AppWarning], list[AppEvent]]:
+        c = self.config
+        found: list[AppWarning] = []
+        if "fcw" in c.enabled:
+            found += forward_collision(snap, c.fcw)
+        if "eebl" in c.enabled:
+            found += eebl(snap, c.eebl)
+        if "bsw" in c.enabled or "lcw" in c.enabled:
+            found += [w for w in blind_spot(snap, c.bsw) if w.app in c.enabled]
+        events: list[AppEvent] = []
+        for app, mon in self.monitors.items():
+            on = {w.rv_id for w in found if w.app == app}
+            for rv_id in sorted(on):
+                events += mon.update(snap.t, rv_id, True)
+            events += mon.close_absent(snap.t, on)
+        return found, events

@@ -76,13 +76,16 @@ Choices this module makes where the paper is silent (all documented, all tested)
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+
+import numpy as np
+
+from catc.apps.events import AppWarning
 
 __all__ = [
     "FcwConfig",
-    "FcwEvent",
-    "FcwMonitor",
     "FcwRange",
+    "forward_collision",
     "required_deceleration",
     "should_warn",
     "warning_range",
@@ -240,83 +243,30 @@ def should_warn(range_m: float, fcw_range: FcwRange) -> bool:
     return range_m < fcw_range.r_w
 
 
-@dataclass(frozen=True)
-class FcwEvent:
-    """A warning episode for one RV; ``t_end`` is None while it is still open."""
-
-    kind: str  # "start" or "end"
-    rv_id: object
-    t_start: float
-    t_end: float | None = None
+_CENTRE = 2  # catc.classify.LATERAL_CODES
+_ONGOING = 0  # catc.classify.DIRECTION_CODES
 
 
-@dataclass
-class _RvState:
-    on_count: int = 0  # consecutive warn ticks while idle
-    first_on_t: float | None = None  # time of the first of those ticks
-    active_start: float | None = None  # t_start of the open event
-    last_true_t: float | None = None  # last tick with warn=True while open
-    false_since: float | None = None  # first warn=False tick of the current gap
+def forward_collision(snap, config: FcwConfig = FcwConfig()) -> list[AppWarning]:
+    """The FCW condition at this tick, for the in-path target of a :class:`MapSnapshot`.
 
-
-@dataclass
-class FcwMonitor:
-    """Turns per-tick warn flags into start/end events per RV, with hysteresis.
-
-    Pure: the caller passes the time ``t`` (s, non-decreasing per RV).
-
-    * **Start:** after ``warn`` has been True on ``on_ticks`` consecutive updates of
-      that RV; ``t_start`` is the time of the first of those ticks.
-    * **End:** once ``warn`` has been False for ``off_time`` seconds, i.e. at an
-      update with ``t - (first False tick of the gap) >= off_time``; ``t_end`` is the
-      first False tick of the gap (when the warning condition actually stopped).
-      A True tick within the gap cancels it (flicker), and the event goes on.
-
-    ``off_time`` defaults to 0.5 s: five ticks at the 10 Hz BSM/FCW rate.  A range
-    hovering at r_w (measurement noise, a lost BSM) flips ``warn`` for a tick or two;
-    without a hold-off each flip would end the event and start a new one, inflating
-    warning counts and chopping their durations.  0.5 s is short against the t_d of
-    1.5 s, so a real release is still reported promptly.
+    The target is the nearest RV classified Ahead, On Centre and Ongoing (CAMP's
+    "in-path" lead vehicle; the paper: "the TC will classify the vehicle as Ahead and the
+    FCW application will be evaluated").  Range = the bumper-to-bumper gap along the HV
+    path, ``s - (L_HV + L_RV)/2`` (BSM positions are vehicle centres), at least 0; the
+    RV's speed is its component along the lane, ``v_RV cos(phi_RV - phi_lane)``; its
+    acceleration is its last BSM's.  Returns one warning or none.
     """
-
-    on_ticks: int = 1
-    off_time: float = 0.5
-    _rv: dict[object, _RvState] = field(default_factory=dict, init=False, repr=False)
-
-    def __post_init__(self) -> None:
-        if self.on_ticks < 1:
-            raise ValueError("on_ticks must be >= 1")
-        if not (math.isfinite(self.off_time) and self.off_time >= 0.0):
-            raise ValueError("off_time must be finite and >= 0")
-
-    def update(self, t: float, rv_id: object, warn: bool) -> list[FcwEvent]:
-        """Feed one tick for ``rv_id``; returns the events it produced (0 or 1)."""
-        st = self._rv.setdefault(rv_id, _RvState())
-        if st.active_start is None:  # idle
-            if not warn:
-                st.on_count, st.first_on_t = 0, None
-                return []
-            if st.on_count == 0:
-                st.first_on_t = t
-            st.on_count += 1
-            if st.on_count < self.on_ticks:
-                return []
-            assert st.first_on_t is not None
-            st.active_start, st.last_true_t, st.false_since = st.first_on_t, t, None
-            st.on_count, st.first_on_t = 0, None
-            return [FcwEvent("start", rv_id, st.active_start)]
-        # event open
-        if warn:
-            st.last_true_t, st.false_since = t, None
-            return []
-        if st.false_since is None:
-            st.false_since = t
-        if t - st.false_since >= self.off_time:
-            ev = FcwEvent("end", rv_id, st.active_start, st.false_since)
-            self._rv[rv_id] = _RvState()
-            return [ev]
+    z = snap.zone
+    mask = z.ahead & (z.lateral == _CENTRE) & (z.direction == _ONGOING)
+    if not mask.any():
         return []
-
-    def open_events(self) -> dict[object, float]:
-        """rv_id -> t_start of the events still open (e.g. at the end of a capture)."""
-        return {k: s.active_start for k, s in self._rv.items() if s.active_start is not None}
+    cand = np.flatnonzero(mask)
+    i = int(cand[np.argmin(z.s[cand])])
+    host = snap.host
+    gap = max(0.0, float(z.s[i]) - 0.5 * (host.length + float(snap.length[i])))
+    v_rv = max(0.0, float(snap.speed[i]) * math.cos(math.radians(float(z.heading_diff_deg[i]))))
+    r = warning_range(max(host.speed, 0.0), host.accel, v_rv, float(snap.accel[i]), config)
+    if not should_warn(gap, r):
+        return []
+    return [AppWarning("fcw", int(snap.ids[i]), gap, r.r_w)]

@@ -1,0 +1,605 @@
+"""The Context-Aware Map (CAM) and its one entry point, :meth:`ContextAwareMap.step`.
+
+Reference paper, section "Context-Aware Target Classification (CA-TC)": a local map of
+the latest record of every remote vehicle (RV), the path history of the host vehicle (HV)
+and of every RV, a tracking module that predicts RVs whose BSMs were lost and filters
+outliers, the HV path prediction, lane estimation, and the target classification of
+section "Target Classification" on the current *and* the predicted positions.  The
+safety applications (:mod:`catc.apps`) run on the resulting :class:`MapSnapshot`.
+
+``step(now, host, messages)`` is called once per HV tick (10 Hz) by the live OBU and by
+the offline simulator alike.  It is pure: the result depends only on the arguments and on
+the previous calls, never on a clock, so a replay gives the same snapshots bit for bit.
+
+What one step does, in order:
+
+1. **Timing.**  Each BSM's generation time is recovered from its ``secMark`` against
+   ``now`` (:func:`message_time`: the age is ``secMark(now) - secMark`` modulo one minute,
+   so the minute rollover is handled).  Messages are applied oldest first; ties by id
+   and msgCnt, so the arrival order within a tick does not matter.
+2. **Admission** (each rejection is counted under its reason in :attr:`counters`):
+   ``incomplete`` (no position, time, speed or heading), ``implausible`` (speed above
+   ``max_speed``), ``late`` (older than ``stale_after_s``), ``future`` (generated more
+   than ``max_future_s`` after ``now``), ``duplicate`` (same time as the RV's last
+   accepted message: a repeat or a replay of it), ``out_of_order`` (older than the RV's
+   last accepted message: a reordered or replayed one), ``jump`` (the position moved
+   farther than physics allows since the last accepted message: ``(max(v_last, v_new)
+   + max_accel·dt)·dt + gnss_tolerance_m``).  When ``reacquire_after`` consecutive
+   ``jump`` rejections are consistent with each other by the same rule, the track is
+   restarted from them (``reacquired``): a track whose *old* data were the outlier must
+   not be locked out for ever, while random garbage (not self-consistent) never takes a
+   track over.
+3. **Local map**: an accepted message updates its RV's record and predictor and its path
+   history.  A new RV gets a track; the table holds at most ``max_tracks``.  When it is
+   full, the RV farthest from the HV is evicted if the newcomer is nearer (``displaced``),
+   else the newcomer is dropped (``table_full``): nearby vehicles are the ones the
+   safety applications need.  RVs silent for more than ``stale_after_s`` are evicted
+   (``evicted_stale``).
+4. **HV**: its own predictor and path history are updated with ``host`` (no loss on the
+   HV channel).  The HV path ahead is the arc of radius ``R = v / yaw rate``
+   (:func:`catc.classify.hv_radius_m`), behind it the concise path history.
+5. **Tracking**: every RV is estimated at ``now`` with its predictor (an RV with a fresh
+   BSM gets that BSM's state, moved forward by any latency) and at ``now + horizon_s``
+   (the predicted position).
+6. **Classification** of the current positions against the HV path now, and of the
+   predicted positions against the HV's own predicted pose and path at ``now +
+   horizon_s``.  **Lane estimation**: for an RV ahead (within ``trail_range_m``, not
+   Oncoming) whose trail (its estimated position, then its concise path history)
+   reaches back past the HV, the longitudinal and lateral offsets are measured along
+   that trail instead (:func:`catc.classify.trail_offset`: the HV's offset from the RV's
+   trail, negated), and the lane heading of Eq. (tc_heading) is the trail's direction
+   where the HV is: where the RV drove is where the lane goes, which a constant-radius
+   arc does not know on a curve that changes.  On the real OpenACC
+   platoons this agrees with the HV's own later path far more often (see
+   tests/test_cam_data.py).  Lane offsets are ``round(d / w_lane)``.
+7. The applications, when given, turn the snapshot into per-tick warnings and events.
+
+Units and frames as in :mod:`catc.bsm` and :mod:`catc.classify`: ENU metres in the run's
+frame (``origin``, or the HV's first position), headings in degrees clockwise from north,
+lateral offsets positive to the right.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import numpy.typing as npt
+
+from catc.bsm import BSM
+from catc.classify import (
+    ClassifyConfig,
+    HostPath,
+    ZoneArrays,
+    classify_many,
+    hv_radius_m,
+    lateral_codes,
+    trail_offset,
+)
+from catc.geo import EnuFrame, heading_diff_deg
+from catc.pathhistory import ConcisePathHistory
+from catc.predict import make_predictor
+from catc.predict.base import Observation, Predictor
+
+__all__ = [
+    "CamConfig",
+    "ContextAwareMap",
+    "HostEstimate",
+    "MapSnapshot",
+    "RvView",
+    "message_time",
+]
+
+Array = npt.NDArray[np.float64]
+
+#: J2735 eventHardBraking is bit 7 of VehicleEventFlags (named bit 0 = the MSB).
+EVENT_HARD_BRAKING = 7
+#: AntiLockBrakeStatus "engaged" (catc.bsm.ControlStatus.ENGAGED).
+_ABS_ENGAGED = 3
+#: Counter names, in the order reports list them.
+COUNTERS = (
+    "received", "accepted", "incomplete", "implausible", "late", "future", "duplicate",
+    "out_of_order", "jump", "reacquired", "table_full", "displaced", "evicted_stale",
+    "tracks_created", "ticks",
+)
+
+
+@dataclass(frozen=True)
+class CamConfig:
+    """Every parameter of the CAM; each default says where it comes from."""
+
+    #: The tracking predictor (:func:`catc.predict.make_predictor`), also the HV's.
+    predictor: str = "hgp"
+    #: How far ahead (s) the predicted position is classified.  The paper's example
+    #: (an RV now Behind, predicted Behind-Right) needs a horizon of the order of a lane
+    #: change; 2.0 s is ours, within the 3 s the HGP's training window covers.
+    horizon_s: float = 2.0
+    #: An RV silent this long (s) is evicted; older messages are ``late``.  10 s is the
+    #: HGP forecast horizon (HgpConfig.horizon_s): the paper sweeps to PER 95 % and 1 Hz,
+    #: where gaps of several seconds are normal and must be predicted, not forgotten.
+    stale_after_s: float = 10.0
+    #: Generation times up to this far (s) after ``now`` are accepted (clock offsets
+    #: between the HV and RV GNSS time bases); later ones are ``future``.
+    max_future_s: float = 0.5
+    #: Most RVs tracked at once.  A DSRC channel carries at most ~1,600 BSM/s (issue 6);
+    #: 1,000 RVs at 10 Hz is already far beyond it.
+    max_tracks: int = 1000
+    #: Highest plausible speed (m/s), 252 km/h.
+    max_speed: float = 70.0
+    #: Largest plausible |acceleration| (m/s²) between messages: ~1.2 g, beyond any
+    #: road vehicle's braking.
+    max_accel: float = 12.0
+    #: Position noise allowed on top of the physics bound (m): a few GNSS sigmas.
+    gnss_tolerance_m: float = 3.0
+    #: Consecutive ``jump`` rejections after which the track restarts from the new data.
+    reacquire_after: int = 3
+    #: Allowable error (m) of the CAM's concise path histories.  SAE J2945/1's 1 m is
+    #: for what a vehicle transmits; for lane estimation a 1 m chord error is over half
+    #: the ±1.8 m lane band.  Measured on the OpenACC platoons (tests/test_cam_data.py,
+    #: agreement with the lane the HV then drives): 1.0 m 78-95 %, 0.3 m 83-97 %, 0.1 m
+    #: no better than 0.3 m.
+    ph_tolerance_m: float = 0.3
+    #: Thresholds of the zone equations.
+    classify: ClassifyConfig = field(default_factory=ClassifyConfig)
+    #: Lane estimation from the trails of RVs ahead (module docstring, step 6): on
+    #: (default) or off (HV path only).
+    trail_lanes: bool = True
+    #: Farthest RV ahead (m) whose trail is used; 300 m is the J2945/1 path-history span.
+    trail_range_m: float = 300.0
+    #: ENU origin (lat, lon, h); None = the HV's first position.
+    origin: tuple[float, float, float] | None = None
+    #: Vehicle length (m) when a BSM does not say: a typical passenger car (J2735 size is
+    #: optional in practice only for Part I size "unavailable").
+    default_length_m: float = 4.8
+    #: Vehicle width (m) when a BSM does not say.
+    default_width_m: float = 1.9
+
+    def __post_init__(self) -> None:
+        positive = ("horizon_s", "stale_after_s", "max_speed", "max_accel",
+                    "ph_tolerance_m", "default_length_m", "default_width_m")
+        for name in positive:
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0.0):
+                raise ValueError(f"CamConfig.{name} must be positive and finite, got {value}")
+        for name in ("max_future_s", "gnss_tolerance_m"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ValueError(f"CamConfig.{name} must be >= 0 and finite, got {value}")
+        if self.stale_after_s > 30.0:
+            raise ValueError("CamConfig.stale_after_s must be <= 30 s (secMark spans a minute)")
+        if self.max_tracks < 1 or self.reacquire_after < 1:
+            raise ValueError("CamConfig.max_tracks and reacquire_after must be >= 1")
+        make_predictor(self.predictor)  # an unknown name fails here, not at the first RV
+
+
+def message_time(now: float, sec_mark: int) -> float:
+    """Generation time of a BSM with ``sec_mark`` (ms within the minute) seen at ``now``.
+
+    The age is ``(secMark(now) - sec_mark) mod 60000`` ms, so a message from second 59.9
+    read at second 0.1 of the next minute is 0.2 s old.  secMark cannot tell an age of
+    40 s from one of -20 s: ages over 30 s are read as from the future (a clock offset),
+    and the result is then after ``now``.  Either reading is rejected by the CAM (late or
+    future), since ``stale_after_s`` is at most 30 s.
+    """
+    now_ms = round(now * 1000.0) % 60_000
+    age_ms = (now_ms - sec_mark) % 60_000
+    if age_ms > 30_000:
+        age_ms -= 60_000
+    return now - age_ms / 1000.0
+
+
+def hard_braking(bsm: BSM, decel_threshold: float) -> bool:
+    """The BSM says it brakes hard: eventHardBraking set, ABS engaged, or a longitudinal
+    deceleration of at least ``decel_threshold`` (m/s², positive)."""
+    if bsm.events is not None and bsm.events.size > EVENT_HARD_BRAKING \
+            and bsm.events.bit(EVENT_HARD_BRAKING):
+        return True
+    if int(bsm.brakes.abs) == _ABS_ENGAGED:
+        return True
+    return bsm.accel_long is not None and bsm.accel_long <= -decel_threshold
+
+
+#: Hard braking by deceleration: 0.4 g, SAE J2945/1's hard-braking event threshold.
+HARD_BRAKING_DECEL = 0.4 * 9.80665
+
+
+@dataclass(slots=True)
+class _Track:
+    """One RV in the local map."""
+
+    temp_id: int
+    predictor: Predictor
+    history: ConcisePathHistory
+    bsm: BSM  # the latest accepted message
+    t: float  # its generation time
+    x: float
+    y: float
+    first_t: float
+    accepted: int = 1
+    #: The consecutive jump rejections, if they agree with each other: (t, x, y, speed, n).
+    alt: tuple[float, float, float, float, int] | None = None
+    fresh_at: float = math.nan  # the step time that last applied a message
+    est_x: float = math.nan  # last estimate, for the table-full policy
+    est_y: float = math.nan
+
+
+@dataclass(frozen=True, slots=True)
+class HostEstimate:
+    """The HV at a tick: pose and motion in the run's ENU frame, and its path."""
+
+    t: float
+    x: float
+    y: float
+    lat: float
+    lon: float
+    speed: float
+    heading: float
+    accel: float
+    yaw_rate: float
+    length: float
+    width: float
+    radius_m: float  # signed radius of the predicted path (inf = straight)
+    path: HostPath  # the path the current positions are classified against
+    predicted_path: HostPath  # the HV's predicted pose at t + horizon
+
+
+@dataclass(frozen=True, slots=True)
+class RvView:
+    """One RV of a :class:`MapSnapshot`, as plain values (for logs, tests and captures)."""
+
+    temp_id: int
+    x: float
+    y: float
+    speed: float
+    heading: float
+    accel: float
+    var_x: float
+    var_y: float
+    source: str
+    age: float
+    fresh: bool
+    lane: int
+    zone: object  # catc.classify.Zone
+    predicted_x: float
+    predicted_y: float
+    predicted_zone: object  # catc.classify.Zone
+    hard_braking: bool
+    length: float
+    width: float
+
+
+@dataclass(frozen=True, eq=False)
+class MapSnapshot:
+    """The CAM after one step: the HV, every tracked RV (column arrays, one row per RV in
+    the map's order), classifications, warnings and counters.
+
+    Columns: ``ids`` (TemporaryID), ``x, y`` (m), ``speed`` (m/s), ``heading`` (deg),
+    ``accel`` (m/s², from the RV's last BSM), ``var_x, var_y`` (m², NaN for models
+    without uncertainty), ``source`` (what produced the estimate: ``bsm``, ``gp``, ``ca``,
+    ...), ``age`` (s since the last BSM was generated), ``fresh`` (a BSM was applied in
+    this step), ``lane`` (lane offset, positive right), ``zone`` / ``predicted_zone``
+    (:class:`catc.classify.ZoneArrays`), ``pred_x, pred_y, pred_heading, pred_speed`` (at
+    ``t + horizon_s``), ``hard_braking``, ``length, width`` (m).
+    """
+
+    t: float
+    horizon_s: float
+    host: HostEstimate
+    ids: npt.NDArray[np.int64]
+    x: Array
+    y: Array
+    speed: Array
+    heading: Array
+    accel: Array
+    var_x: Array
+    var_y: Array
+    source: tuple[str, ...]
+    age: Array
+    fresh: npt.NDArray[np.bool_]
+    lane: npt.NDArray[np.int64]
+    zone: ZoneArrays
+    pred_x: Array
+    pred_y: Array
+    pred_heading: Array
+    pred_speed: Array
+    predicted_zone: ZoneArrays
+    hard_braking: npt.NDArray[np.bool_]
+    length: Array
+    width: Array
+    #: The RV's offsets were measured along its own trail (lane estimation).
+    on_trail: npt.NDArray[np.bool_]
+    counters: Mapping[str, int]
+    #: Per-tick warning conditions: (app, rv_id) pairs whose condition holds now.
+    warnings: tuple[tuple[str, int], ...] = ()
+    #: Start/end events raised in this step (:class:`catc.apps.events.AppEvent`).
+    events: tuple = ()
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def index(self, temp_id: int) -> int:
+        """Row of RV ``temp_id`` (``KeyError`` when it is not tracked)."""
+        hits = np.flatnonzero(self.ids == temp_id)
+        if not len(hits):
+            raise KeyError(temp_id)
+        return int(hits[0])
+
+    def rv(self, i: int) -> RvView:
+        """Row ``i`` as an :class:`RvView`."""
+        return RvView(int(self.ids[i]), float(self.x[i]), float(self.y[i]),
+                      float(self.speed[i]), float(self.heading[i]), float(self.accel[i]),
+                      float(self.var_x[i]), float(self.var_y[i]), self.source[i],
+                      float(self.age[i]), bool(self.fresh[i]), int(self.lane[i]),
+                      self.zone.zone(i), float(self.pred_x[i]), float(self.pred_y[i]),
+                      self.predicted_zone.zone(i), bool(self.hard_braking[i]),
+                      float(self.length[i]), float(self.width[i]))
+
+    def __iter__(self) -> Iterator[RvView]:
+        return (self.rv(i) for i in range(len(self)))
+
+
+class ContextAwareMap:
+    """The CA-TC state: local map, tracks, path histories, HV path; see the module doc.
+
+    ``apps`` is an optional callable ``apps(snapshot) -> (warnings, events)`` (normally a
+    :class:`catc.apps.SafetyApps`) run at the end of every step.
+    """
+
+    def __init__(self, config: CamConfig | None = None, apps=None,
+                 predictor_kwargs: Mapping | None = None) -> None:
+        self.config = config or CamConfig()
+        self.apps = apps
+        self._predictor_kwargs = dict(predictor_kwargs or {})
+        self.frame: EnuFrame | None = (EnuFrame(*self.config.origin)
+                                       if self.config.origin is not None else None)
+        self._tracks: dict[int, _Track] = {}
+        self._host_predictor = self._new_predictor()
+        self._host_history = ConcisePathHistory(tolerance_m=self.config.ph_tolerance_m)
+        self._host_t = -math.inf
+        self.counters: dict[str, int] = dict.fromkeys(COUNTERS, 0)
+
+    # -- public ---------------------------------------------------------------------------
+    def __len__(self) -> int:
+        return len(self._tracks)
+
+    def history(self, temp_id: int) -> list[tuple[float, float]]:
+        """Concise path history of an RV, most recent first (ENU m)."""
+        return self._tracks[temp_id].history.points()
+
+    def host_history(self) -> list[tuple[float, float]]:
+        """Concise path history of the HV, most recent first (ENU m)."""
+        return self._host_history.points()
+
+    def step(self, now: float, host: BSM, messages: Sequence[BSM] = ()) -> MapSnapshot:
+        """Advance the map to ``now`` (s, the HV's dataset time) with the HV state ``host``
+        and the RV messages received since the last step; see the module docstring."""
+        if not math.isfinite(now) or now <= self._host_t:
+            raise ValueError(f"step times must increase: {now} after {self._host_t}")
+        if host.lat is None or host.lon is None:
+            raise ValueError("the HV state has no position")
+        self.counters["ticks"] += 1
+        if self.frame is None:
+            self.frame = EnuFrame(host.lat, host.lon, 0.0)
+        usable = self._admit_fields(now, messages)
+        lat = np.array([host.lat] + [m.lat for _, m in usable])
+        lon = np.array([host.lon] + [m.lon for _, m in usable])
+        ex, ny, _ = self.frame.to_enu(lat, lon, 0.0)
+        ex, ny = np.atleast_1d(ex).tolist(), np.atleast_1d(ny).tolist()
+        host_est = self._update_host(now, host, ex[0], ny[0])
+        for (t, m), x, y in zip(usable, ex[1:], ny[1:], strict=True):
+            self._apply(now, t, m, x, y, host_est)
+        self._evict_stale(now)
+        snap = self._snapshot(now, host_est)
+        if self.apps is not None:
+            warnings, events = self.apps(snap)
+            snap = _with_apps(snap, tuple(warnings), tuple(events))
+        return snap
+
+    # -- admission ------------------------------------------------------------------------
+    def _admit_fields(self, now: float, messages: Sequence[BSM]) -> list[tuple[float, BSM]]:
+        """Messages with what tracking needs, timed and sorted oldest first."""
+        c = self.config
+        cnt = self.counters
+        out: list[tuple[float, BSM]] = []
+        for m in messages:
+            cnt["received"] += 1
+            if (m.lat is None or m.lon is None or m.sec_mark is None or m.speed is None
+                    or m.heading is None or m.sec_mark >= 60_000):
+                cnt["incomplete"] += 1
+                continue
+            if m.speed > c.max_speed:
+                cnt["implausible"] += 1
+                continue
+            t = message_time(now, m.sec_mark)
+            if now - t > c.stale_after_s:
+                cnt["late"] += 1
+                continue
+            if t - now > c.max_future_s:
+                cnt["future"] += 1
+                continue
+            out.append((t, m))
+        out.sort(key=lambda tm: (tm[0], tm[1].temp_id, tm[1].msg_cnt))
+        return out
+
+    def _apply(self, now: float, t: float, m: BSM, x: float, y: float,
+               host: HostEstimate) -> None:
+        c = self.config
+        cnt = self.counters
+        tr = self._tracks.get(m.temp_id)
+        if tr is None:
+            if not self._make_room(x, y, host):
+                cnt["table_full"] += 1
+                return
+            self._new_track(now, t, m, x, y)
+            return
+        if t == tr.t:
+            cnt["duplicate"] += 1
+            return
+        if t < tr.t:
+            cnt["out_of_order"] += 1
+            return
+        if not self._plausible_move(tr.t, tr.x, tr.y, tr.bsm.speed or 0.0, t, x, y, m.speed):
+            alt = tr.alt
+            if alt is not None and t > alt[0] and \
+                    self._plausible_move(alt[0], alt[1], alt[2], alt[3], t, x, y, m.speed):
+                tr.alt = (t, x, y, m.speed, alt[4] + 1)
+            else:
+                tr.alt = (t, x, y, m.speed, 1)
+            if tr.alt[4] < c.reacquire_after:
+                cnt["jump"] += 1
+                return
+            cnt["reacquired"] += 1
+            del self._tracks[m.temp_id]
+            self._new_track(now, t, m, x, y)
+            return
+        tr.alt = None
+        tr.bsm, tr.t, tr.x, tr.y = m, t, x, y
+        tr.accepted += 1
+        tr.fresh_at = now
+        tr.predictor.update(_observation(t, x, y, m))
+        tr.history.add(t, x, y)
+        cnt["accepted"] += 1
+
+    def _plausible_move(self, t0: float, x0: float, y0: float, v0: float, t: float,
+                        x: float, y: float, v: float) -> bool:
+        """Physics bound on the distance moved from (t0, x0, y0) to (t, x, y)."""
+        c = self.config
+        dt = t - t0
+        allowed = (max(v0, v) + c.max_accel * dt) * dt + c.gnss_tolerance_m
+        return math.hypot(x - x0, y - y0) <= allowed
+
+    def _new_track(self, now: float, t: float, m: BSM, x: float, y: float) -> None:
+        pred = self._new_predictor()
+        pred.update(_observation(t, x, y, m))
+        hist = ConcisePathHistory(tolerance_m=self.config.ph_tolerance_m)
+        hist.add(t, x, y)
+        self._tracks[m.temp_id] = _Track(m.temp_id, pred, hist, m, t, x, y, t, fresh_at=now,
+                                         est_x=x, est_y=y)
+        self.counters["accepted"] += 1
+        self.counters["tracks_created"] += 1
+
+    def _make_room(self, x: float, y: float, host: HostEstimate) -> bool:
+        """True when a new track fits (evicting the farthest RV if the newcomer is nearer)."""
+        if len(self._tracks) < self.config.max_tracks:
+            return True
+        far_id, far_d2 = None, -1.0
+        for tid, tr in self._tracks.items():
+            d2 = (tr.est_x - host.x) ** 2 + (tr.est_y - host.y) ** 2
+            if d2 > far_d2 or (d2 == far_d2 and far_id is not None and tid > far_id):
+                far_id, far_d2 = tid, d2
+        if far_id is None or (x - host.x) ** 2 + (y - host.y) ** 2 >= far_d2:
+            return False
+        del self._tracks[far_id]
+        self.counters["displaced"] += 1
+        return True
+
+    def _evict_stale(self, now: float) -> None:
+        limit = self.config.stale_after_s
+        stale = [tid for tid, tr in self._tracks.items() if now - tr.t > limit]
+        for tid in stale:
+            del self._tracks[tid]
+        self.counters["evicted_stale"] += len(stale)
+
+    # -- HV ---------------------------------------------------------------------------------
+    def _update_host(self, now: float, host: BSM, x: float, y: float) -> HostEstimate:
+        c = self.config
+        self._host_t = now
+        speed = host.speed or 0.0
+        heading = host.heading if host.heading is not None else 0.0
+        accel = host.accel_long or 0.0
+        self._host_predictor.update(Observation(now, x, y, speed, heading, accel,
+                                                host.yaw_rate))
+        self._host_history.add(now, x, y)
+        radius = hv_radius_m(speed, host.yaw_rate)
+        history = tuple(self._host_history.points())
+        path = HostPath(x, y, heading, radius, history)
+        p = self._host_predictor.predict(now + c.horizon_s)
+        predicted = HostPath(p.x, p.y, p.heading, radius, ((x, y), *history))
+        return HostEstimate(now, x, y, host.lat, host.lon, speed, heading, accel,
+                            host.yaw_rate, host.length or c.default_length_m,
+                            host.width or c.default_width_m, radius, path, predicted)
+
+    # -- tracking and classification ---------------------------------------------------------
+    def _snapshot(self, now: float, host: HostEstimate) -> MapSnapshot:
+        c = self.config
+        tracks = list(self._tracks.values())
+        n = len(tracks)
+        cur = np.empty((n, 6))
+        fut = np.empty((n, 4))
+        source: list[str] = []
+        later = now + c.horizon_s
+        for i, tr in enumerate(tracks):
+            p = tr.predictor.predict(now)
+            q = tr.predictor.predict(later)
+            cur[i] = (p.x, p.y, p.speed, p.heading, p.var_x, p.var_y)
+            fut[i] = (q.x, q.y, q.speed, q.heading)
+            source.append(p.source)
+            tr.est_x, tr.est_y = p.x, p.y
+        ids = np.array([tr.temp_id for tr in tracks], dtype=np.int64)
+        bsm_cols = np.array([(tr.bsm.accel_long or 0.0, now - tr.t,
+                              tr.bsm.length or c.default_length_m,
+                              tr.bsm.width or c.default_width_m) for tr in tracks]
+                            ).reshape(n, 4)
+        zone = classify_many(host.path, cur[:, 0], cur[:, 1], cur[:, 3], c.classify)
+        on_trail = np.zeros(n, dtype=bool)
+        if c.trail_lanes and n:
+            zone, on_trail = self._trail_lanes(tracks, zone, cur, host)
+        predicted_zone = classify_many(host.predicted_path, fut[:, 0], fut[:, 1], fut[:, 3],
+                                       c.classify)
+        return MapSnapshot(
+            t=now, horizon_s=c.horizon_s, host=host, ids=ids,
+            x=cur[:, 0], y=cur[:, 1], speed=cur[:, 2], heading=cur[:, 3],
+            accel=bsm_cols[:, 0], var_x=cur[:, 4], var_y=cur[:, 5], source=tuple(source),
+            age=bsm_cols[:, 1], fresh=np.array([tr.fresh_at == now for tr in tracks],
+                                               dtype=bool),
+            lane=np.rint(zone.d / c.classify.w_lane).astype(np.int64),
+            zone=zone, pred_x=fut[:, 0], pred_y=fut[:, 1], pred_heading=fut[:, 3],
+            pred_speed=fut[:, 2], predicted_zone=predicted_zone,
+            hard_braking=np.array([hard_braking(tr.bsm, HARD_BRAKING_DECEL) for tr in tracks],
+                                  dtype=bool),
+            length=bsm_cols[:, 2], width=bsm_cols[:, 3], on_trail=on_trail,
+            counters=dict(self.counters))
+
+    def _trail_lanes(self, tracks: list[_Track], zone: ZoneArrays, cur: np.ndarray,
+                     host: HostEstimate) -> tuple[ZoneArrays, npt.NDArray[np.bool_]]:
+        """Offsets and lane heading along the trails of RVs ahead (module docstring, 6).
+
+        Candidates: Ahead within ``trail_range_m`` and not Oncoming.  When the HV lies on
+        an RV's trail, ``s`` is the distance along it, ``d`` minus the HV's offset from
+        it, and Eq. (tc_heading) compares the HV's heading with the trail's there.
+        """
+        c = self.config
+        cand = np.flatnonzero(zone.ahead & (zone.direction != 1) & (zone.s <= c.trail_range_m))
+        s, d = zone.s.copy(), zone.d.copy()
+        lane, diff = zone.lane_heading_deg.copy(), zone.heading_diff_deg.copy()
+        used = np.zeros(len(tracks), dtype=bool)
+        for i in cand.tolist():
+            trail = [(float(cur[i, 0]), float(cur[i, 1])), *tracks[i].history.points()]
+            off = trail_offset(trail, (host.x, host.y))
+            if off is not None:
+                s[i], d[i], lane[i] = off[0], -off[1], off[2]
+                diff[i] = abs(heading_diff_deg(host.heading, off[2]))
+                used[i] = True
+        if not used.any():
+            return zone, used
+        cc = c.classify
+        direction = np.select([diff <= cc.delta_phi_ongoing, diff >= cc.delta_phi_oncoming],
+                              [0, 1], 2).astype(np.int8)
+        return replace(zone, s=s, d=d, lateral=lateral_codes(d, cc.w_lane),
+                       direction=direction, lane_heading_deg=lane,
+                       heading_diff_deg=diff), used
+
+    def _new_predictor(self) -> Predictor:
+        return make_predictor(self.config.predictor, **self._predictor_kwargs)
+
+
+def _observation(t: float, x: float, y: float, m: BSM) -> Observation:
+    return Observation(t, x, y, m.speed or 0.0, m.heading or 0.0, m.accel_long or 0.0,
+                       m.yaw_rate)
+
+
+def _with_apps(snap: MapSnapshot, warnings: tuple, events: tuple) -> MapSnapshot:
+    """The snapshot with the applications' output (a copy: snapshots are immutable)."""
+    return replace(snap, warnings=warnings, events=events)

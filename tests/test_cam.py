@@ -1,0 +1,333 @@
+"""Tests for catc.cam: the Context-Aware Map's step(), tracking, admission, eviction, the
+predicted classification and the applications run on it.
+
+Vehicles are placed in ENU metres of a fixed frame and sent as BSMs (lat/lon), as the
+OBU receives them.  Most tests use the ``ca`` predictor, whose predictions can be
+written down by hand; one runs ``hgp``.
+"""
+
+from __future__ import annotations
+
+import math
+import random
+
+import numpy as np
+import pytest
+
+from catc.apps import AppsConfig, SafetyApps
+from catc.bsm import BSM, BitString
+from catc.cam import CamConfig, ContextAwareMap, message_time
+from catc.classify import Direction, Lateral, Longitudinal
+from catc.geo import EnuFrame
+
+ORIGIN = (46.89, 16.84, 0.0)  # ZalaZONE, Hungary
+FRAME = EnuFrame(*ORIGIN)
+
+
+def bsm(tid: int, t: float, x: float, y: float, speed: float, heading: float,
+        accel: float = 0.0, yaw: float = 0.0, cnt: int | None = None, **kw) -> BSM:
+    lat, lon, _ = FRAME.to_geodetic(x, y, 0.0)
+    kw.setdefault("length", 4.8)
+    kw.setdefault("width", 1.9)
+    return BSM(msg_cnt=round(t * 10) % 128 if cnt is None else cnt, temp_id=tid,
+               sec_mark=round(t * 1000) % 60_000, lat=lat, lon=lon, speed=speed,
+               heading=heading, accel_long=accel, yaw_rate=yaw, **kw)
+
+
+def cam(predictor: str = "ca", apps: bool = False, **kw) -> ContextAwareMap:
+    cfg = CamConfig(predictor=predictor, origin=ORIGIN, **kw)
+    return ContextAwareMap(cfg, SafetyApps() if apps else None)
+
+
+def north(t: float, y0: float, v: float, x: float = 0.0, tid: int = 1) -> BSM:
+    """A vehicle driving north at constant speed v, at y0 + v t."""
+    return bsm(tid, t, x, y0 + v * t, v, 0.0)
+
+
+# --- timing ---------------------------------------------------------------------------------
+
+
+def test_message_time_handles_the_minute_rollover() -> None:
+    # now = 60.05 s (secMark 50); a message of secMark 59950 was generated 0.1 s before.
+    assert message_time(60.05, 59_950) == pytest.approx(59.95, abs=1e-9)
+    assert message_time(12.3, 12_300) == pytest.approx(12.3, abs=1e-12)
+    # 200 ms in the future (clock offset) stays in the future, not 59.8 s in the past
+    assert message_time(10.0, 10_200) == pytest.approx(10.2, abs=1e-9)
+
+
+# --- tracking -------------------------------------------------------------------------------
+
+
+def test_rv_ahead_in_lane_is_tracked_classified_and_predicted_through_loss() -> None:
+    # HV at y = 20 t, RV 30 m ahead at the same speed; the RV's BSMs stop after t = 1.0.
+    m = cam()
+    for k in range(21):
+        t = k * 0.1
+        msgs = [north(t, 30.0, 20.0, tid=7)] if k <= 10 else []
+        snap = m.step(t, north(t, 0.0, 20.0, tid=99), msgs)
+    assert len(snap) == 1
+    rv = snap.rv(0)
+    assert rv.temp_id == 7
+    # CA from the last BSM (t = 1.0, y = 50, 20 m/s, a = 0) to t = 2.0: y = 70
+    assert rv.y == pytest.approx(70.0, abs=1e-3)
+    assert rv.x == pytest.approx(0.0, abs=1e-3)
+    assert rv.age == pytest.approx(1.0, abs=1e-9)
+    assert not rv.fresh and rv.source == "ca"
+    assert rv.zone.longitudinal is Longitudinal.AHEAD
+    assert rv.zone.lateral is Lateral.ON_CENTRE
+    assert rv.zone.direction is Direction.ONGOING
+    assert rv.zone.s == pytest.approx(30.0, abs=1e-3)
+    assert rv.lane == 0
+    assert snap.counters["accepted"] == 11 and snap.counters["received"] == 11
+
+
+def test_fresh_bsm_gives_its_own_state() -> None:
+    m = cam()
+    snap = m.step(0.0, north(0.0, 0.0, 10.0, tid=99), [bsm(5, 0.0, 3.6, 25.0, 12.0, 0.0)])
+    rv = snap.rv(0)
+    assert rv.fresh and rv.source in ("bsm", "ca")
+    assert (rv.x, rv.y) == pytest.approx((3.6, 25.0), abs=1e-4)
+    assert rv.zone.lateral is Lateral.RIGHT and rv.lane == 1
+
+
+def test_latency_is_compensated_by_the_predictor() -> None:
+    # A BSM generated at t = 0.9 arrives at the t = 1.0 tick: the CAM moves it to 1.0.
+    m = cam()
+    m.step(0.9, north(0.9, 0.0, 20.0, tid=99))
+    snap = m.step(1.0, north(1.0, 0.0, 20.0, tid=99), [north(0.9, 30.0, 20.0, tid=7)])
+    assert snap.rv(0).y == pytest.approx(30.0 + 20.0, abs=1e-3)
+    assert snap.rv(0).age == pytest.approx(0.1, abs=1e-9)
+
+
+# --- admission ------------------------------------------------------------------------------
+
+
+def test_duplicates_replays_and_reordering_are_counted_not_applied() -> None:
+    m = cam()
+    hv = lambda t: north(t, 0.0, 20.0, tid=99)  # noqa: E731
+    m.step(0.0, hv(0.0), [north(0.0, 30.0, 20.0, tid=7)])
+    m.step(0.1, hv(0.1), [north(0.1, 30.0, 20.0, tid=7), north(0.1, 30.0, 20.0, tid=7)])
+    # a replay of the t = 0.0 message, and the t = 0.2 message arriving before t = 0.15
+    snap = m.step(0.3, hv(0.3), [north(0.0, 30.0, 20.0, tid=7), north(0.2, 30.0, 20.0, tid=7)])
+    snap = m.step(0.4, hv(0.4), [north(0.15, 30.0, 20.0, tid=7)])
+    c = snap.counters
+    assert c["duplicate"] == 1
+    assert c["out_of_order"] == 2  # the replay (0.0 < 0.1) and the late 0.15
+    assert c["accepted"] == 3
+    assert snap.rv(0).y == pytest.approx(30.0 + 20.0 * 0.4, abs=1e-3)
+
+
+def test_messages_in_one_tick_are_applied_oldest_first() -> None:
+    # Reordered within a tick (0.2 before 0.1): both are applied, nothing is dropped.
+    m = cam()
+    m.step(0.0, north(0.0, 0.0, 20.0, tid=99), [north(0.0, 30.0, 20.0, tid=7)])
+    snap = m.step(0.2, north(0.2, 0.0, 20.0, tid=99),
+                  [north(0.2, 30.0, 20.0, tid=7), north(0.1, 30.0, 20.0, tid=7)])
+    assert snap.counters["accepted"] == 3 and snap.counters["out_of_order"] == 0
+
+
+def test_bad_fields_are_rejected_with_their_reason() -> None:
+    m = cam(stale_after_s=5.0)
+    good = north(10.0, 30.0, 20.0, tid=7)
+    msgs = [
+        BSM(msg_cnt=1, temp_id=1, sec_mark=10_000, lat=None, lon=None, speed=1.0, heading=0.0),
+        BSM(msg_cnt=1, temp_id=2, sec_mark=None, lat=good.lat, lon=good.lon, speed=1.0,
+            heading=0.0),
+        bsm(3, 10.0, 0.0, 50.0, 90.0, 0.0),  # 324 km/h
+        bsm(4, 4.0, 0.0, 50.0, 20.0, 0.0),  # 6 s old
+        bsm(5, 11.0, 0.0, 50.0, 20.0, 0.0),  # 1 s in the future
+        good,
+    ]
+    snap = m.step(10.0, north(10.0, 0.0, 20.0, tid=99), msgs)
+    c = snap.counters
+    assert (c["incomplete"], c["implausible"], c["late"], c["future"]) == (2, 1, 1, 1)
+    assert c["received"] == 6 and c["accepted"] == 1
+    assert list(snap.ids) == [7]
+
+
+def test_position_jump_is_rejected_then_consistent_data_reacquire() -> None:
+    m = cam()
+    hv = lambda t: north(t, 0.0, 20.0, tid=99)  # noqa: E731
+    for k in range(5):
+        m.step(k * 0.1, hv(k * 0.1), [north(k * 0.1, 30.0, 20.0, tid=7)])
+    # From t = 0.5 the same id reports 500 m east, consistently (20 m/s north).
+    for k in range(5, 9):
+        t = k * 0.1
+        snap = m.step(t, hv(t), [north(t, 30.0, 20.0, x=500.0, tid=7)])
+        if k < 7:
+            assert snap.rv(0).x == pytest.approx(0.0, abs=1e-6), k
+    c = snap.counters
+    assert c["jump"] == 2 and c["reacquired"] == 1
+    assert snap.rv(0).x == pytest.approx(500.0, abs=1e-3)
+
+
+def test_random_garbage_positions_never_take_a_track_over() -> None:
+    m = cam()
+    rng = random.Random(3)
+    hv = lambda t: north(t, 0.0, 20.0, tid=99)  # noqa: E731
+    for k in range(40):
+        t = k * 0.1
+        msgs = [north(t, 30.0, 20.0, tid=7)] if k % 4 == 0 else []
+        msgs.append(north(t + 0.001, 30.0, 20.0, x=rng.uniform(-5000, 5000), tid=7))
+        snap = m.step(t + 0.002, hv(t + 0.002), msgs)
+    assert snap.counters["reacquired"] == 0
+    assert abs(snap.rv(0).x) < 1e-3
+
+
+# --- the local map ---------------------------------------------------------------------------
+
+
+def test_stale_rvs_are_evicted() -> None:
+    m = cam(stale_after_s=2.0)
+    m.step(0.0, north(0.0, 0.0, 20.0, tid=99), [north(0.0, 30.0, 20.0, tid=7)])
+    snap = m.step(2.0, north(2.0, 0.0, 20.0, tid=99))
+    assert len(snap) == 1  # exactly 2.0 s old: kept
+    snap = m.step(2.1, north(2.1, 0.0, 20.0, tid=99))
+    assert len(snap) == 0 and snap.counters["evicted_stale"] == 1
+
+
+def test_full_table_keeps_the_nearest_rvs() -> None:
+    m = cam(max_tracks=2)
+    hv = north(0.0, 0.0, 20.0, tid=99)
+    snap = m.step(0.0, hv, [north(0.0, 100.0, 20.0, tid=1), north(0.0, 50.0, 20.0, tid=2)])
+    assert sorted(snap.ids) == [1, 2]
+    # a newcomer at 200 m is dropped; one at 20 m displaces the RV at 100 m
+    hv = north(0.1, 0.0, 20.0, tid=99)
+    snap = m.step(0.1, hv, [north(0.1, 200.0, 20.0, tid=3), north(0.1, 20.0, 20.0, tid=4)])
+    assert sorted(snap.ids) == [2, 4]
+    assert snap.counters["table_full"] == 1 and snap.counters["displaced"] == 1
+
+
+def test_step_is_deterministic_whatever_the_arrival_order() -> None:
+    rng = random.Random(0)
+
+    def run(shuffle: bool) -> list[tuple]:
+        m = cam(predictor="hgp")
+        out = []
+        for k in range(40):
+            t = k * 0.1
+            msgs = [bsm(i, t, 3.6 * (i % 3 - 1), 10.0 * i + 18.0 * t, 18.0,
+                        0.5 * math.sin(t + i), yaw=0.3) for i in range(1, 6) if (k + i) % 3]
+            if shuffle:
+                rng.shuffle(msgs)
+            snap = m.step(t, north(t, 0.0, 18.0, tid=99), msgs)
+            out.append((tuple(snap.ids), snap.x.tobytes(), snap.y.tobytes(),
+                        snap.pred_x.tobytes(), snap.zone.lateral.tobytes()))
+        return out
+
+    assert run(False) == run(True)
+
+
+def test_step_times_must_increase_and_config_is_checked() -> None:
+    m = cam()
+    m.step(1.0, north(1.0, 0.0, 20.0, tid=99))
+    with pytest.raises(ValueError, match="increase"):
+        m.step(1.0, north(1.0, 0.0, 20.0, tid=99))
+    with pytest.raises(ValueError, match="unknown predictor"):
+        CamConfig(predictor="nope")
+    with pytest.raises(ValueError, match="horizon_s"):
+        CamConfig(horizon_s=0.0)
+
+
+# --- HV path, curves, predicted zones --------------------------------------------------------
+
+
+def test_vehicle_ahead_on_a_curve_is_on_centre_along_the_path() -> None:
+    # HV at the origin heading north, turning right on a 200 m radius (v 20 m/s,
+    # yaw rate v/R = 0.1 rad/s = 5.7296 deg/s).  An RV 60 m ahead along the same arc.
+    R, v = 200.0, 20.0
+    yaw = math.degrees(v / R)
+    a = 60.0 / R
+    rx, ry, rh = R * (1 - math.cos(a)), R * math.sin(a), math.degrees(a)
+    m = cam()
+    snap = m.step(0.0, bsm(99, 0.0, 0.0, 0.0, v, 0.0, yaw=yaw),
+                  [bsm(7, 0.0, rx, ry, v, rh, yaw=yaw)])
+    rv = snap.rv(0)
+    assert rv.zone.lateral is Lateral.ON_CENTRE and rv.zone.direction is Direction.ONGOING
+    assert rv.zone.s == pytest.approx(60.0, abs=1e-3)
+    assert rv.zone.d == pytest.approx(0.0, abs=1e-3)
+    # a straight-line projection would put it 8.9 m to the right: Far Right
+    assert rx == pytest.approx(8.93, abs=0.01)
+
+
+def test_paper_example_behind_now_predicted_behind_right_raises_lcw() -> None:
+    # The paper's CA-TC example: the local map shows RV1 behind, the CAM predicts it
+    # behind-right, so LCW/BSW process it.  HV 20 m/s north; RV1 12 m behind in the same
+    # lane at 24 m/s, drifting right at 2.2 m/s (heading atan(2.2/24) = 5.24 deg).
+    h = math.degrees(math.atan2(2.2, 24.0))
+    v = math.hypot(2.2, 24.0)
+    m = cam(apps=True)
+    snaps = []
+    for k in range(6):
+        t = k * 0.1
+        rv = bsm(1, t, 2.2 * t, -12.0 + 24.0 * t, v, h)
+        snaps.append(m.step(t, north(t, 0.0, 20.0, tid=99), [rv]))
+    snap = snaps[0]
+    rv = snap.rv(0)
+    assert rv.zone.longitudinal is Longitudinal.BEHIND
+    assert rv.zone.lateral is Lateral.ON_CENTRE
+    # at t + 2 s: x = 4.4 m right, s = -12 + 8 = -4 m: behind-right, in the blind spot
+    assert rv.predicted_zone.longitudinal is Longitudinal.BEHIND
+    assert rv.predicted_zone.lateral is Lateral.RIGHT
+    assert [(w.app, w.rv_id, w.side) for w in snap.warnings] == [("lcw", 1, "right")]
+    assert [(e.app, e.kind) for e in snap.events] == [("lcw", "start")]
+
+
+def test_blind_spot_vehicle_raises_bsw() -> None:
+    m = cam(apps=True)
+    snap = m.step(0.0, north(0.0, 0.0, 20.0, tid=99),
+                  [bsm(3, 0.0, -3.6, -4.0, 20.0, 0.0)])
+    assert [(w.app, w.side) for w in snap.warnings] == [("bsw", "left")]
+    assert snap.rv(0).lane == -1
+
+
+# --- applications through step ------------------------------------------------------------------
+
+
+def test_fcw_and_eebl_fire_on_a_hard_braking_lead_and_end_after_it_clears() -> None:
+    # HV 25 m/s; lead 40 m ahead (gap 35.2 m) braking at -6 m/s^2 from 25 m/s.
+    # FCW with the default CAMP config: r_w > gap at once (the lead brakes hard).
+    m = cam(apps=True)
+    events = []
+    first = None
+    for k in range(50):
+        t = k * 0.1
+        v_rv = max(0.0, 25.0 - 6.0 * t)
+        y_rv = 40.0 + (25.0 * t - 3.0 * t * t if v_rv > 0 else 25.0**2 / 12.0)
+        rv = bsm(7, t, 0.0, y_rv, v_rv, 0.0, accel=-6.0 if v_rv > 0 else 0.0)
+        snap = m.step(t, north(t, 0.0, 25.0, tid=99), [rv])
+        events += snap.events
+        if first is None and snap.warnings:
+            first = {w.app for w in snap.warnings}
+    assert first == {"fcw", "eebl"}
+    assert {(e.app, e.kind) for e in events} >= {("fcw", "start"), ("eebl", "start")}
+    # the lead stopped at t = 4.17 s: its deceleration ends, so EEBL ends 0.5 s later
+    assert ("eebl", "end") in {(e.app, e.kind) for e in events}
+
+
+def test_eebl_from_the_hard_braking_event_flag_in_the_next_lane() -> None:
+    m = cam(apps=True)
+    flags = BitString(1 << (13 - 1 - 7), 13)  # eventHardBraking, bit 7 of 13
+    rv = bsm(8, 0.0, 3.6, 80.0, 20.0, 0.0, accel=-1.0, events=flags)
+    snap = m.step(0.0, north(0.0, 0.0, 20.0, tid=99), [rv])
+    assert [w.app for w in snap.warnings] == ["eebl"]
+
+
+def test_apps_config_rejects_unknown_apps() -> None:
+    with pytest.raises(ValueError, match="unknown application"):
+        AppsConfig(enabled=("fcw", "ima"))
+
+
+def test_snapshot_columns_are_consistent() -> None:
+    m = cam(apps=True)
+    msgs = [bsm(i, 0.0, 3.6 * (i - 3), 15.0 * i, 20.0, 0.0) for i in range(1, 6)]
+    snap = m.step(0.0, north(0.0, 0.0, 20.0, tid=99), msgs)
+    n = len(snap)
+    assert n == 5
+    for name in ("x", "y", "speed", "heading", "accel", "age", "pred_x", "pred_y", "length"):
+        assert getattr(snap, name).shape == (n,), name
+    assert len(snap.source) == n
+    assert snap.index(3) == list(snap.ids).index(3)
+    with pytest.raises(KeyError):
+        snap.index(12345)
+    assert np.all(snap.age == 0.0) and np.all(snap.fresh)

@@ -8,6 +8,7 @@ written down by hand; one runs ``hgp``.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import random
 
@@ -15,7 +16,7 @@ import numpy as np
 import pytest
 
 from catc.apps import AppsConfig, SafetyApps
-from catc.bsm import BSM, BitString
+from catc.bsm import BSM, BitString, PathHistory, PathHistoryPoint
 from catc.cam import CamConfig, ContextAwareMap, message_time
 from catc.classify import Direction, Lateral, Longitudinal
 from catc.geo import EnuFrame
@@ -331,3 +332,33 @@ def test_snapshot_columns_are_consistent() -> None:
     with pytest.raises(KeyError):
         snap.index(12345)
     assert np.all(snap.age == 0.0) and np.all(snap.fresh)
+
+
+def _crumbs(lat: float, lon: float, points: list[tuple[float, float, float]]) -> PathHistory:
+    """Part II crumbs for ENU (dt_back, x, y) points, relative to (lat, lon)."""
+    out = []
+    for dt, x, y in points:
+        la, lo, _ = FRAME.to_geodetic(x, y, 0.0)
+        out.append(PathHistoryPoint(la - lat, lo - lon, 0.0, dt))
+    return PathHistory(tuple(out))
+
+
+def test_part2_path_history_fills_the_trail_of_a_new_rv_and_gaps() -> None:
+    # An RV first heard at (0, 100) heading north, its crumbs say it came round a bend
+    # from the east: (20, 40) 4 s ago, (5, 70) 2 s ago.
+    m = cam()
+    rv = bsm(7, 0.0, 0.0, 100.0, 15.0, 0.0)
+    rv = dataclasses.replace(rv, path_history=_crumbs(rv.lat, rv.lon,
+                                                      [(2.0, 5.0, 70.0), (4.0, 20.0, 40.0)]))
+    snap = m.step(0.0, north(0.0, 0.0, 15.0, tid=99), [rv])
+    assert snap.counters["ph_crumbs_used"] == 2
+    hist = m.history(7)
+    assert len(hist) == 3
+    assert hist[0] == pytest.approx((0.0, 100.0), abs=0.05)
+    assert hist[2] == pytest.approx((20.0, 40.0), abs=0.05)
+    # after a 1 s gap, the crumb inside the gap goes in; the one before the last BSM not
+    rv2 = bsm(7, 1.0, 0.0, 115.0, 15.0, 0.0)
+    rv2 = dataclasses.replace(rv2, path_history=_crumbs(
+        rv2.lat, rv2.lon, [(0.5, 4.0, 107.5), (3.0, 5.0, 70.0)]))
+    snap = m.step(1.0, north(1.0, 0.0, 15.0, tid=99), [rv2])
+    assert snap.counters["ph_crumbs_used"] == 3

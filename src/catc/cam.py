@@ -30,10 +30,12 @@ What one step does, in order:
    not be locked out for ever, while random garbage (not self-consistent) never takes a
    track over.
 3. **Local map**: an accepted message updates its RV's record and predictor and its path
-   history.  A new RV gets a track; the table holds at most ``max_tracks``.  When it is
-   full, the RV farthest from the HV is evicted if the newcomer is nearer (``displaced``),
-   else the newcomer is dropped (``table_full``): nearby vehicles are the ones the
-   safety applications need.  RVs silent for more than ``stale_after_s`` are evicted
+   history.  When it carries Part II pathHistory and follows a gap (a lost message) or
+   starts a track, its crumbs from within the gap go into the RV's history first: the
+   sender's own record of where it drove while we did not hear it.  A new RV gets a
+   track; the table holds at most ``max_tracks``.  When it is full, the RV farthest from
+   the HV is evicted if the newcomer is nearer (``displaced``), else the newcomer is
+   dropped (``table_full``): nearby vehicles are the ones the safety applications need.  RVs silent for more than ``stale_after_s`` are evicted
    (``evicted_stale``).
 4. **HV**: its own predictor and path history are updated with ``host`` (no loss on the
    HV channel).  The HV path ahead is the arc of radius ``R = v / yaw rate``
@@ -78,8 +80,8 @@ from catc.classify import (
     lateral_codes,
     trail_offset,
 )
-from catc.geo import EnuFrame, heading_diff_deg
-from catc.pathhistory import ConcisePathHistory
+from catc.geo import EnuFrame
+from catc.pathhistory import ConcisePathHistory, from_bsm_path_history
 from catc.predict import make_predictor
 from catc.predict.base import Observation, Predictor
 
@@ -102,8 +104,12 @@ _ABS_ENGAGED = 3
 COUNTERS = (
     "received", "accepted", "incomplete", "implausible", "late", "future", "duplicate",
     "out_of_order", "jump", "reacquired", "table_full", "displaced", "evicted_stale",
-    "tracks_created", "ticks",
+    "tracks_created", "ph_crumbs_used", "ticks",
 )
+
+#: A gap (s) between accepted BSMs beyond which the new BSM's Part II path history is
+#: used to fill the RV's history (more than one 100 ms period: a message was lost).
+_PH_GAP_S = 0.15
 
 
 @dataclass(frozen=True)
@@ -455,12 +461,27 @@ class ContextAwareMap:
             self._new_track(now, t, m, x, y)
             return
         tr.alt = None
+        if m.path_history is not None and t - tr.t > _PH_GAP_S:
+            self._fill_history(tr.history, m, t, tr.t)
         tr.bsm, tr.t, tr.x, tr.y = m, t, x, y
         tr.accepted += 1
         tr.fresh_at = now
         tr.predictor.update(_observation(t, x, y, m))
         tr.history.add(t, x, y)
         cnt["accepted"] += 1
+
+    def _fill_history(self, hist: ConcisePathHistory, m: BSM, t: float,
+                      after: float) -> None:
+        """Add the BSM's own Part II path-history crumbs generated in ``(after, t)``:
+        the sender's path through a gap of lost messages, or before we first heard it."""
+        assert self.frame is not None and m.path_history is not None
+        crumbs = from_bsm_path_history(m.path_history, self.frame, m.lat, m.lon, t)
+        used = 0
+        for tc, xc, yc in reversed(crumbs):
+            if after < tc < t:
+                hist.add(tc, xc, yc)
+                used += 1
+        self.counters["ph_crumbs_used"] += used
 
     def _plausible_move(self, t0: float, x0: float, y0: float, v0: float, t: float,
                         x: float, y: float, v: float) -> bool:
@@ -474,6 +495,8 @@ class ContextAwareMap:
         pred = self._new_predictor()
         pred.update(_observation(t, x, y, m))
         hist = ConcisePathHistory(tolerance_m=self.config.ph_tolerance_m)
+        if m.path_history is not None:
+            self._fill_history(hist, m, t, -math.inf)
         hist.add(t, x, y)
         self._tracks[m.temp_id] = _Track(m.temp_id, pred, hist, m, t, x, y, t, fresh_at=now,
                                          est_x=x, est_y=y)
@@ -580,7 +603,7 @@ class ContextAwareMap:
             off = trail_offset(trail, (host.x, host.y))
             if off is not None:
                 s[i], d[i], lane[i] = off[0], -off[1], off[2]
-                diff[i] = abs(heading_diff_deg(host.heading, off[2]))
+                diff[i] = abs((host.heading - off[2] + 180.0) % 360.0 - 180.0)
                 used[i] = True
         if not used.any():
             return zone, used

@@ -542,4 +542,4 @@ def trail_offset(trail: Sequence[Point], p: Point) -> tuple[float, float, float]
         walked += seg
     if best is None or math.isnan(best[1]):
         return None
-    return best[1], best[2], float(enu_heading_deg(best[3], best[4]))
+    return best[1], best[2], math.degrees(math.atan2(best[3], best[4])) % 360.0

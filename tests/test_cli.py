@@ -102,3 +102,23 @@ def test_obu_frame_decodes_signed_1609_and_rejects_other_messages():
     tim = run("obu.cli", "frame", "001F0300")
     assert tim.returncode == 1 and b"wrong-message-id" in tim.stderr
     assert run("obu.cli", "frame", "zz").returncode == 2
+
+
+def test_replay_lists_the_nyc_fcw_warning_events():
+    path = shared_path("cv-pilot-samples", "nycdot-fcw-event.json")
+    out = run("captures.cli", "replay", "--dataset", f"nyc:{path}", "--predictor", "ca")
+    assert out.returncode == 0, out.stderr
+    events = [json.loads(line) for line in out.stdout.decode().splitlines()]
+    starts = [e["t"] for e in events if e["app"] == "fcw" and e["kind"] == "start"]
+    assert starts and all(e["rv"] == "A305214A" for e in events)
+    assert min(starts, key=abs) == pytest.approx(-2.6, abs=0.05)
+    assert "160 ticks" in out.stderr.decode()
+
+
+@pytest.mark.parametrize("flags", [["--per", "101"], ["--predictor", "nope"],
+                                   ["--apps", "fcw,ima"], ["--host", "NOBODY"]])
+def test_replay_bad_flags_are_one_line_and_exit_2(flags):
+    path = shared_path("cv-pilot-samples", "nycdot-fcw-event.json")
+    out = run("captures.cli", "replay", "--dataset", f"nyc:{path}", *flags)
+    assert out.returncode == 2
+    assert len(out.stderr.decode().strip().splitlines()) == 1, out.stderr

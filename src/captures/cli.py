@@ -14,7 +14,7 @@ import sys
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-from captures import decode, evaluate, train_bank
+from captures import decode, evaluate, replay, train_bank
 from catc.cliargs import dispatch, make_parser
 
 DESCRIPTION = """\
@@ -23,6 +23,7 @@ Capture-and-score post analysis for the V2X testbench.
   decode       print the BSMs in a file as JSON lines (raw UPER, hex, IEEE 1609.2,
                ODE OBU .bin logs, ODE JSON/XML records)
   evaluate     PTE95 of each predictor on real trips under seeded packet loss
+  replay       run the CA-TC and the safety apps offline, print their warning events
   train-bank   train the HGP kernel bank on real trips (Algorithm 1)
 
 Scoring, sweeps and plots arrive with the OBU and captures issues."""
@@ -32,6 +33,7 @@ def main(argv: list[str] | None = None) -> int:
     parser, sub = make_parser("captures", DESCRIPTION)
     decode.register(sub)
     evaluate.register(sub)
+    replay.register(sub)
     train_bank.register(sub)
     return dispatch(parser, argv)
 

@@ -35,8 +35,8 @@ What one step does, in order:
    sender's own record of where it drove while we did not hear it.  A new RV gets a
    track; the table holds at most ``max_tracks``.  When it is full, the RV farthest from
    the HV is evicted if the newcomer is nearer (``displaced``), else the newcomer is
-   dropped (``table_full``): nearby vehicles are the ones the safety applications need.  RVs silent for more than ``stale_after_s`` are evicted
-   (``evicted_stale``).
+   dropped (``table_full``): nearby vehicles are the ones the safety applications need.
+   RVs silent for more than ``stale_after_s`` are evicted (``evicted_stale``).
 4. **HV**: its own predictor and path history are updated with ``host`` (no loss on the
    HV channel).  The HV path ahead is the arc of radius ``R = v / yaw rate``
    (:func:`catc.classify.hv_radius_m`), behind it the concise path history.

@@ -250,3 +250,234 @@ def test_regular_cache_belongs_to_its_bank():
     c1, c2 = p1._regular_cache(tau), p2._regular_cache(tau)
     assert c1 is not c2
     assert not np.allclose(c1[0].Kinv, c2[0].Kinv)
+
+
+# -- the fast path: same forecasts as the readable formulas ------------------------------
+
+
+def random_track(rng, n: int, per: float, dt: float = 0.1) -> list[Observation]:
+    """A random drive (acceleration and yaw rate random walks, heading wrapping through
+    north) sampled at 10 Hz, each sample kept with probability 1 − ``per`` (the last always)."""
+    out, t, x, y = [], 100.0, 0.0, 0.0
+    v, h = 5.0 + 25.0 * rng.random(), 360.0 * rng.random()
+    a, w = rng.normal(0.0, 1.0), rng.normal(0.0, 8.0)
+    for k in range(n):
+        t = round(t + dt, 1)
+        a = float(np.clip(a + rng.normal(0.0, 0.4), -6.0, 3.0))
+        w = float(np.clip(w + rng.normal(0.0, 2.0), -40.0, 40.0))
+        v = max(0.0, v + a * dt)
+        h = (h + w * dt) % 360.0
+        x += v * math.sin(math.radians(h)) * dt
+        y += v * math.cos(math.radians(h)) * dt
+        if rng.random() >= per or k == n - 1:
+            out.append(Observation(t, x, y, v, h, a, w))
+    return out
+
+
+def assert_same_forecast(f, g):
+    assert f.source == g.source
+    assert np.array_equal(f.tau, g.tau)
+    for name in ("x", "y", "speed", "var_x", "var_y"):
+        assert np.allclose(getattr(f, name), getattr(g, name), rtol=0.0, atol=1e-9), name
+    dh = (f.heading - g.heading + 180.0) % 360.0 - 180.0
+    assert np.max(np.abs(dh)) < 1e-7  # degrees: 2e-9 rad
+
+
+@pytest.mark.parametrize("overrides", [
+    {}, {"slopes": False, "select_with_slopes": False}, {"select_with_slopes": False},
+    {"integration": "left", "heading_damping": False}, {"window_s": 4.0},
+    {"speed_model": "ca", "heading_model": "ctrv"}, {"accel_max": 1.0, "yaw_rate_max": 5.0},
+])
+def test_fast_forecast_equals_the_readable_formulas(overrides):
+    """Random windows, regular (no loss: the cached selection and posterior weights) and
+    irregular (direct likelihoods), short and full, over long gaps too: the fast forecast
+    equals the reference implementation (the code before it was made fast) to 1e-9."""
+    rng = np.random.default_rng(11)
+    cfg = HgpConfig(**overrides)
+    regular = irregular = 0
+    for trial in range(36):
+        per = (0.0, 0.5, 0.9, 0.97)[trial % 4]
+        p = HgpPredictor(config=cfg)
+        for o in random_track(rng, int(rng.integers(8, 120)), per):
+            p.update(o)
+        if len(p._obs) < 4:
+            continue
+        _, cache = p._prepare()
+        regular += cache is not None
+        irregular += cache is None
+        for horizon in (3.0, 7.35):
+            assert_same_forecast(p._make_forecast(horizon), p._make_forecast_reference(horizon))
+    assert regular >= 3 and irregular >= 10
+
+
+def test_running_window_equals_the_observation_window():
+    """The running arrays (kept across wrap-arounds of their buffer and of the heading
+    through north) give the same τ, speed and unwrapped heading as _window_series."""
+    from catc.predict.hgp import _window_series
+
+    rng = np.random.default_rng(3)
+    for window_s in (math.inf, 2.5):
+        p = HgpPredictor(config=HgpConfig(window_s=window_s))
+        for k, o in enumerate(random_track(rng, 400, 0.3)):
+            p.update(o)
+            if k % 7 == 0 and len(p._obs) >= 2:
+                rel, _ = p._prepare()
+                tau, ys, yh, _, _ = _window_series(p._obs, window_s)
+                n = len(tau)
+                assert rel.shape == (3, n + 1)
+                assert np.allclose(rel[:, :n], [tau, ys, yh], rtol=0.0, atol=1e-12)
+        p.reset()
+        with pytest.raises(LookupError):
+            p.predict(1.0)
+
+
+def test_stacked_likelihood_and_posterior_equal_the_readable_formulas():
+    from catc.predict.hgp import _lml_stack, _posterior_stack, _series_consts, lml_with_slope
+
+    rng = np.random.default_rng(8)
+    cfg = HgpConfig()
+    speed = np.array([[1.7, 0.8, 0.3], [0.31, 5.0, 0.02], [90.0, 1.5, 0.9]])
+    heading = np.array([[3.0, 0.05, 0.05], [0.3, 2.0, 0.01], [60.0, 1e-4, 1e-5]])
+    thetas = np.vstack([speed, heading])
+    consts = _series_consts(thetas, 3, cfg)
+    grid = np.arange(31) * 0.1
+    rels, pairs, wants = [], [], []
+    for span in (2.9, 12.0, 80.0):  # the last underflows exp for the short γ
+        tau = np.append(-np.sort(rng.uniform(0.05, span, 19))[::-1], 0.0)
+        z = np.vstack([np.append(np.cumsum(rng.normal(size=20)) * 0.1, 0.4),
+                       np.append(np.cumsum(rng.normal(size=20)) * 0.01, -0.05)])
+        z[:, 19] = 0.0
+        got = _lml_stack(tau[None], z[None], consts, 3, thetas)[0]
+        wants.append(np.concatenate([
+            lml_with_slope(tau, z[0, :20], z[0, 20], cfg.noise_accel, speed, cfg.noise_speed),
+            lml_with_slope(tau, z[1, :20], z[1, 20], cfg.noise_yaw, heading,
+                           cfg.noise_heading)]))
+        assert np.allclose(got, wants[-1], rtol=1e-12, atol=1e-8)
+        rels.append(np.vstack([np.append(tau, 0.0), z]))
+        pairs.append((int(rng.integers(3)), int(rng.integers(3))))
+    stacked = np.stack(rels)  # several windows in one call
+    assert np.allclose(_lml_stack(stacked[:, 0, :-1], stacked[:, 1:], consts, 3, thetas),
+                       wants, rtol=1e-12, atol=1e-8)
+    mean, var = _posterior_stack(np.stack(rels), grid,
+                                 np.stack([consts[[i, 3 + j]] for i, j in pairs]))
+    for b, (rel, (i, j)) in enumerate(zip(rels, pairs, strict=True)):
+        for s, (theta, noise, slope_var) in enumerate(
+                [(speed[i], cfg.noise_speed, cfg.noise_accel),
+                 (heading[j], cfg.noise_heading, cfg.noise_yaw)]):
+            m, v = posterior_with_slope(rel[0, :20], rel[1 + s, :20], rel[1 + s, 20],
+                                        slope_var, grid, theta, noise)
+            assert np.allclose(mean[b, s], m, rtol=0.0, atol=1e-9)
+            assert np.allclose(var[b, s], v, rtol=0.0, atol=1e-9)
+
+
+def test_plausibility_bound_never_passes_a_switch():
+    """The cheap bound on the extremes never calls a forecast plausible that _implausible
+    would cut (it only skips work); forecasts built to sit near every threshold."""
+    from catc.predict.hgp import _plausible
+
+    rng = np.random.default_rng(2)
+    p = HgpPredictor(BANK)
+    c = p.config
+    grid = np.arange(31) * 0.1
+    passed = cut = 0
+    for _ in range(3000):
+        speed = rng.uniform(0.0, 30.0) + np.cumsum(rng.normal(0, rng.uniform(0.01, 0.3), 31))
+        head = np.cumsum(rng.normal(0, rng.uniform(0.0005, 0.015), 31))
+        vs = rng.uniform(0, 1, 31) * rng.uniform(0, 1.1 * c.speed_std_max**2)
+        vh = rng.uniform(0, 1, 31) * rng.uniform(0, 1.1 * math.radians(c.heading_std_max)**2)
+        ext = [speed.min(), speed.max(), np.abs(np.diff(speed)).max(),
+               np.abs(np.diff(head)).max(), vs.max(), vh.max()]
+        found = p._implausible(grid, speed, vs, head, vh)
+        if _plausible(c, *ext):
+            passed += 1
+            assert found is None
+        cut += found is not None
+    assert passed > 300 and cut > 300
+
+
+def test_reselection_every_k_samples_and_after_gaps():
+    cfg = HgpConfig(reselect_every=3, reselect_gap_s=0.25)
+    p = HgpPredictor(BANK, cfg)
+    obs = drive(60, v0=12.0, a=0.3, yaw=2.0)
+    counts = []
+    for o in obs[:20]:
+        p.update(o)
+        if len(p._obs) >= cfg.min_points:
+            p.predict(o.t + 0.5)
+            p.predict(o.t + 1.5)  # no new sample: never a new selection
+        counts.append(p.stats["selections"])
+    assert counts[3:] == [1 + (k - 3) // 3 for k in range(3, 20)]
+    p.update(obs[22])  # two messages lost: a gap of 0.3 s > 0.25 s
+    p.predict(obs[22].t + 0.5)
+    assert p.stats["selections"] == counts[-1] + 1
+    p.update(obs[24])  # one lost (0.2 s): counted, not a gap
+    p.predict(obs[24].t + 0.5)
+    assert p.stats["selections"] == counts[-1] + 1
+    every = HgpPredictor(BANK, HgpConfig(reselect_every=1))
+    for o in obs[:20]:
+        every.update(o)
+        if len(every._obs) >= 4:
+            every.predict(o.t + 0.5)
+    assert every.stats["selections"] == 17
+    with pytest.raises(ValueError):
+        HgpPredictor(BANK, HgpConfig(reselect_every=0))
+
+
+def test_reused_selection_is_the_selection_made_then():
+    """Between reselections the forecast uses the θ chosen at the last one (model
+    persistency), not a new choice; with reselect_every=1 it equals the reference."""
+    rng = np.random.default_rng(5)
+    track = random_track(rng, 80, 0.5)
+    lazy = HgpPredictor(config=HgpConfig(reselect_every=1000, reselect_gap_s=math.inf))
+    fresh = HgpPredictor(config=HgpConfig(reselect_every=1))
+    first = None
+    for o in track:
+        lazy.update(o)
+        fresh.update(o)
+        if len(lazy._obs) >= 4:
+            lazy.predict(o.t + 0.1)
+            fresh.predict(o.t + 0.1)
+            first = first or lazy._selection
+            assert lazy._selection is first
+    ref = fresh._make_forecast_reference(3.0)
+    assert_same_forecast(fresh._make_forecast(3.0), ref)
+    assert fresh.stats["selections"] > 20 and lazy.stats["selections"] == 1
+
+
+def test_forecast_many_equals_predicting_one_by_one():
+    from catc.predict.hgp import forecast_many
+    from catc.predict.kinematic import ConstantSpeedPredictor
+
+    rng = np.random.default_rng(9)
+    tracks = [random_track(rng, 160, per) for per in (0.0, 0.3, 0.5, 0.5, 0.8, 0.95) * 4]
+    cfg = HgpConfig(reselect_every=4, reselect_gap_s=0.25)
+    batch = [HgpPredictor(config=cfg) for _ in tracks]
+    alone = [HgpPredictor(config=cfg) for _ in tracks]
+    others = [ConstantSpeedPredictor(), HgpPredictor(config=cfg)]  # left alone
+    made = compared = 0
+    times = sorted({o.t for tr in tracks for o in tr})
+    for t in times:
+        for tr, b, a in zip(tracks, batch, alone, strict=True):
+            for o in tr:
+                if o.t == t:
+                    b.update(o)
+                    a.update(o)
+        made += forecast_many([*batch, *others], t + 2.0)
+        for b, a in zip(batch, alone, strict=True):
+            for when in (t, t + 2.0):
+                try:
+                    pa = a.predict(when)
+                except (LookupError, ValueError):
+                    with pytest.raises((LookupError, ValueError)):
+                        b.predict(when)
+                    continue
+                pb = b.predict(when)
+                assert pb.source == pa.source
+                assert np.allclose([pb.x, pb.y, pb.speed, pb.var_x, pb.var_y],
+                                   [pa.x, pa.y, pa.speed, pa.var_x, pa.var_y], atol=1e-9,
+                                   equal_nan=True)
+                assert abs((pb.heading - pa.heading + 180) % 360 - 180) < 1e-7
+                compared += 1
+    assert made > 1000 and compared > 4000
+    assert sum(b.stats["forecasts"] for b in batch) == made
+    assert forecast_many(batch, times[-1] + 2.0) == 0  # all cached already

@@ -82,7 +82,7 @@ from catc.classify import (
 )
 from catc.geo import EnuFrame
 from catc.pathhistory import ConcisePathHistory, from_bsm_path_history
-from catc.predict import make_predictor
+from catc.predict import make_predictor, prepare
 from catc.predict.base import Observation, Predictor
 
 __all__ = [
@@ -553,6 +553,7 @@ class ContextAwareMap:
         fut = np.empty((n, 4))
         source: list[str] = []
         later = now + c.horizon_s
+        prepare([tr.predictor for tr in tracks], later)  # the HGP's forecasts, stacked
         for i, tr in enumerate(tracks):
             p = tr.predictor.predict(now)
             q = tr.predictor.predict(later)

@@ -49,4 +49,14 @@ def make_predictor(name: str, **kwargs) -> Predictor:
     return factories[name](**kwargs)
 
 
-__all__ = ["NAMES", "Observation", "Prediction", "Predictor", "make_predictor"]
+def prepare(predictors, t: float) -> int:
+    """Let predictors that can do it stacked prepare the answers for times up to ``t``
+    (one call per tick before the per-RV ``predict`` calls; today the HGP family:
+    :func:`catc.predict.hgp.forecast_many`).  Results are the same as without the call.
+    Returns the number of forecasts made."""
+    from catc.predict.hgp import forecast_many
+
+    return forecast_many(predictors, t)
+
+
+__all__ = ["NAMES", "Observation", "Prediction", "Predictor", "make_predictor", "prepare"]

@@ -17,6 +17,7 @@ from catc.apps import SafetyApps
 from catc.cam import CamConfig, ContextAwareMap
 from catc.classify import HostPath, lateral_codes
 from catc.datasets import nyc, openacc
+from catc.evaluate import hindsight_offset
 from catc.mobility import MobilityTable
 from catc.replay import run_offline, temp_id
 from tests.conftest import shared_path
@@ -84,23 +85,6 @@ OPENACC = ("short_setting_dynamic_part1.csv", "long_setting_dynamic_part16.csv",
            "short_setting_handling_part36.csv")
 
 
-def _hindsight_d(hx: np.ndarray, hy: np.ndarray, px: float, py: float) -> float | None:
-    """Signed offset (right +) of (px, py) from the HV's *actual* later path (polyline)."""
-    bx, by = np.diff(hx), np.diff(hy)
-    seg2 = bx * bx + by * by
-    keep = seg2 > 1e-6
-    if not keep.any():
-        return None
-    bx, by, seg2, x0, y0 = bx[keep], by[keep], seg2[keep], hx[:-1][keep], hy[:-1][keep]
-    t = np.clip(((px - x0) * bx + (py - y0) * by) / seg2, 0.0, 1.0)
-    ex, ey = px - (x0 + t * bx), py - (y0 + t * by)
-    d2 = ex * ex + ey * ey
-    j = int(np.argmin(d2))
-    if j == len(bx) - 1 and t[j] >= 1.0:
-        return None  # the HV does not get there within the window
-    return float(np.copysign(np.sqrt(d2[j]), ex[j] * by[j] - ey[j] * bx[j]))
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("name", OPENACC)
 def test_openacc_followers_are_ahead_ongoing_and_in_the_lane_the_hv_then_drives(name) -> None:
@@ -127,7 +111,7 @@ def test_openacc_followers_are_ahead_ongoing_and_in_the_lane_the_hv_then_drives(
                 i = snap.index(temp_id(lead))
             except KeyError:
                 continue
-            d = _hindsight_d(h.x[k:k + 100], h.y[k:k + 100], snap.x[i], snap.y[i])
+            d = hindsight_offset(h.x[k:k + 100], h.y[k:k + 100], snap.x[i], snap.y[i])
             if d is None:
                 continue
             truth = lateral_codes(np.array([d]), 3.6)[0]

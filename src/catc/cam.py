@@ -143,9 +143,9 @@ class CamConfig:
     reacquire_after: int = 3
     #: Allowable error (m) of the CAM's concise path histories.  SAE J2945/1's 1 m is
     #: for what a vehicle transmits; for lane estimation a 1 m chord error is over half
-    #: the ±1.8 m lane band.  Measured on the OpenACC platoons (tests/test_cam_data.py,
-    #: agreement with the lane the HV then drives): 1.0 m 78-95 %, 0.3 m 83-97 %, 0.1 m
-    #: no better than 0.3 m.
+    #: the ±1.8 m lane band.  Measured on the OpenACC platoons (bench/lanes.py
+    #: --ph-tolerance, agreement with the lane the HV then drives): 1.0 m is 1-7 points
+    #: below 0.3 m on every file; 0.1 m is no better than 0.3 m.
     ph_tolerance_m: float = 0.3
     #: Thresholds of the zone equations.
     classify: ClassifyConfig = field(default_factory=ClassifyConfig)

@@ -101,3 +101,26 @@ def evaluate(
                         progress(done, total)
             scores.append(score(np.concatenate(errors), name, per))
     return scores
+
+
+def hindsight_offset(later_x: np.ndarray, later_y: np.ndarray, px: float,
+                     py: float) -> float | None:
+    """Signed offset (m, positive right) of (px, py) from the path a vehicle actually drove
+    next (``later_x/y``: its positions from now on), or None when that path does not reach
+    (px, py) in the window.  The ground truth of "same lane" that lane estimation is
+    scored against (tests/test_cam_data.py, bench/lanes.py)."""
+    bx, by = np.diff(later_x), np.diff(later_y)
+    seg2 = bx * bx + by * by
+    keep = seg2 > 1e-6
+    if not keep.any():
+        return None
+    bx, by, seg2 = bx[keep], by[keep], seg2[keep]
+    x0, y0 = later_x[:-1][keep], later_y[:-1][keep]
+    t = np.clip(((px - x0) * bx + (py - y0) * by) / seg2, 0.0, 1.0)
+    ex, ey = px - (x0 + t * bx), py - (y0 + t * by)
+    d2 = ex * ex + ey * ey
+    j = int(np.argmin(d2))
+    if j == len(bx) - 1 and t[j] >= 1.0:
+        return None
+    return float(np.copysign(np.sqrt(d2[j]), ex[j] * by[j] - ey[j] * bx[j]))
+

@@ -122,3 +122,12 @@ def test_replay_bad_flags_are_one_line_and_exit_2(flags):
     out = run("captures.cli", "replay", "--dataset", f"nyc:{path}", *flags)
     assert out.returncode == 2
     assert len(out.stderr.decode().strip().splitlines()) == 1, out.stderr
+
+
+def test_demo_replays_the_nyc_event_through_the_wire_and_the_ca_tc():
+    data = shared_path("cv-pilot-samples").parent
+    out = run("captures.demo", "--data", str(data))
+    assert out.returncode == 0, out.stderr
+    text = out.stdout.decode()
+    assert "T =  -2.6 s  FCW start on A305214A" in text
+    assert "gap 34.3 m < r_w" in text

@@ -1,10 +1,12 @@
 """``make demo``: run what the testbench has today and say plainly what it did.
 
-Today that is the J2735 wire layer: it decodes every real BSM in the shared
-jpo-ode vectors (deployed OBU logs, 1609.2 envelopes, ODE records), re-encodes them
-and checks the bits, then sends a synthetic vehicle's BSMs through encode → 1609.2 →
-unwrap → decode and measures what the J2735 units cost in position (mm, via ENU).
-The RVE → OBU run on the built-in scenario replaces this when those daemons exist.
+Today that is the J2735 wire layer and the CA-TC: it decodes every real BSM in the
+shared jpo-ode vectors (deployed OBU logs, 1609.2 envelopes, ODE records), re-encodes
+them and checks the bits, sends a synthetic vehicle's BSMs through encode → 1609.2 →
+unwrap → decode and measures what the J2735 units cost in position (mm, via ENU), then
+replays the NYC CV pilot's real FCW event through the Context-Aware Target
+Classification and the FCW, as wire-decoded BSMs.  The RVE → OBU run on the built-in
+scenario replaces this when those daemons exist.
 """
 
 from __future__ import annotations
@@ -94,13 +96,45 @@ def quantization_check(n: int = 600) -> None:
           f"mean {err_mm.mean():.1f} mm; heading error max {head_err.max():.4f}°")
 
 
+def nyc_fcw_event(path: Path) -> None:
+    """The real FCW event through encode -> decode -> CA-TC -> FCW; print the timeline."""
+    from catc.apps import SafetyApps
+    from catc.cam import CamConfig, ContextAwareMap
+    from catc.datasets import nyc
+    from catc.j2735 import decode_frame
+    from catc.replay import ticks
+
+    print(f"3. A real FCW event from the NYC CV pilot ({path.name}): a deployed device")
+    print("   warned at T = 0 s.  Its host and target BSMs, through UPER and our CA-TC + FCW:")
+    table = nyc.parse(path.read_text(), path.stem)
+    cam = ContextAwareMap(CamConfig(predictor="hgp", origin=table.origin), SafetyApps())
+    target = next(v for v in table.tracks if v != table.default_host)
+    for now, host, msgs in ticks(table):
+        snap = cam.step(now, decode_frame(encode_frame(host)),
+                        [decode_frame(encode_frame(m)) for m in msgs])
+        for e in snap.events:
+            when = e.t_start if e.kind == "start" else e.t_end
+            print(f"   T = {when:+5.1f} s  {e.app.upper()} {e.kind:<5} on {target}")
+        if abs(now) < 1e-6 and len(snap):
+            z = snap.rv(0).zone
+            w = next((w for w in snap.warnings if w.app == "fcw"), None)
+            cond = (f"gap {w.range_m:.1f} m < r_w {w.threshold_m:.1f} m: FCW"
+                    if w else "no FCW")
+            print(f"   T =  +0.0 s  target {z.longitudinal.value}/{z.lateral.value}/"
+                  f"{z.direction.value}, {abs(z.d):.2f} m off the host's path; {cond}")
+    speed = table.meta["track_speed"][target]
+    print(f"   The target broadcasts {table.tracks[target].speed[0]:.2f} m/s throughout while "
+          f"its positions move at {float(np.median(speed)):.1f} m/s:")
+    print("   a stuck speed field; with its real speed no FCW fires (docs/catc.md).")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="captures.demo", description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=Path("../shared/data"),
                     help="the shared data folder (default ../shared/data)")
     args = ap.parse_args(argv)
-    print("catc-hil demo: the J2735 wire layer (the RVE/OBU run replaces this demo when the")
-    print("daemons exist).\n")
+    print("catc-hil demo: the J2735 wire layer and the CA-TC (the RVE/OBU run replaces this")
+    print("demo when the daemons exist).\n")
     vectors = args.data / "jpo-ode-bsm-vectors"
     if vectors.is_dir():
         vectors_table(vectors)
@@ -108,8 +142,15 @@ def main(argv: list[str] | None = None) -> int:
         print(f"1. skipped: no real vectors at {vectors} (pass --data DIR)")
     print()
     quantization_check()
+    print()
+    event = args.data / "cv-pilot-samples" / "nycdot-fcw-event.json"
+    if event.is_file():
+        nyc_fcw_event(event)
+    else:
+        print(f"3. skipped: no NYC event at {event} (pass --data DIR)")
     print("\nTry: .venv/bin/captures decode ../shared/data/jpo-ode-bsm-vectors/rxMsg_BSM.bin")
-    print("     .venv/bin/python bench/codec.py")
+    print("     .venv/bin/captures replay --dataset nyc:" + str(event))
+    print("     .venv/bin/python bench/codec.py; .venv/bin/python bench/step.py")
     return 0
 
 

@@ -1,0 +1,130 @@
+"""Capture files of the daemons: append-only and flushed, so a killed process keeps all
+but its last tick.
+
+* :class:`JsonLines`: one JSON object per line (schedules, ground truth, tracks, warnings).
+  Lines are written as they come and flushed by :meth:`JsonLines.flush`, which the daemons
+  call once per tick.
+* :class:`PcapngWriter`: the UDP frames as a pcapng file (IETF draft-ietf-opsawg-pcapng:
+  one Section Header Block, one Interface Description Block of link type RAW (101, an
+  IPv4 or IPv6 header first), then one Enhanced Packet Block per datagram with a
+  microsecond timestamp), which Wireshark and tshark open.  Each datagram is wrapped in
+  the IPv4/IPv6 and UDP headers it had on the wire (UDP checksum 0 for IPv4, computed
+  for IPv6 where it is mandatory).
+* CAN frames go to python-can's ASC (text) log (:func:`can_log`), which is line based and
+  therefore survives a kill; BLF compresses whole blocks and would lose the tail.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import json
+import os
+import struct
+from pathlib import Path
+from typing import Any, BinaryIO, TextIO
+
+__all__ = ["JsonLines", "PcapngWriter", "can_log", "udp_packet"]
+
+
+class JsonLines:
+    """Append-only JSON lines at ``path`` (created with its directory)."""
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._f: TextIO = open(self.path, "a", encoding="utf-8")  # noqa: SIM115
+        self.lines = 0
+
+    def write(self, record: dict[str, Any]) -> None:
+        self._f.write(json.dumps(record, separators=(",", ":"), allow_nan=True) + "\n")
+        self.lines += 1
+
+    def flush(self) -> None:
+        """Hand everything written so far to the OS (a kill -9 no longer loses it)."""
+        self._f.flush()
+
+    def close(self) -> None:
+        if not self._f.closed:
+            self._f.flush()
+            self._f.close()
+
+
+def _checksum16(data: bytes) -> int:
+    if len(data) % 2:
+        data += b"\x00"
+    s = sum(struct.unpack(f"!{len(data) // 2}H", data))
+    while s >> 16:
+        s = (s & 0xFFFF) + (s >> 16)
+    return ~s & 0xFFFF
+
+
+def udp_packet(src: tuple[str, int], dst: tuple[str, int], payload: bytes) -> bytes:
+    """The IPv4 or IPv6 + UDP packet that carried ``payload`` (for the pcapng capture)."""
+    s_ip, d_ip = ipaddress.ip_address(src[0]), ipaddress.ip_address(dst[0])
+    length = 8 + len(payload)
+    if d_ip.version == 4:
+        if s_ip.version != 4:
+            s_ip = ipaddress.ip_address("127.0.0.1")
+        ip = struct.pack("!BBHHHBBH4s4s", 0x45, 0, 20 + length, 0, 0x4000, 64, 17, 0,
+                         s_ip.packed, d_ip.packed)
+        ip = ip[:10] + struct.pack("!H", _checksum16(ip)) + ip[12:]
+        return ip + struct.pack("!HHHH", src[1], dst[1], length, 0) + payload
+    if s_ip.version != 6:
+        s_ip = ipaddress.ip_address("::1")
+    udp = struct.pack("!HHHH", src[1], dst[1], length, 0) + payload
+    pseudo = s_ip.packed + d_ip.packed + struct.pack("!IxxxB", length, 17)
+    csum = _checksum16(pseudo + udp) or 0xFFFF
+    udp = udp[:6] + struct.pack("!H", csum) + udp[8:]
+    return struct.pack("!IHBB16s16s", 6 << 28, length, 17, 64, s_ip.packed, d_ip.packed) + udp
+
+
+def _block(block_type: int, body: bytes) -> bytes:
+    body += b"\x00" * (-len(body) % 4)
+    total = len(body) + 12
+    return struct.pack("<II", block_type, total) + body + struct.pack("<I", total)
+
+
+def _option(code: int, value: bytes) -> bytes:
+    return struct.pack("<HH", code, len(value)) + value + b"\x00" * (-len(value) % 4)
+
+
+class PcapngWriter:
+    """Append-only pcapng of raw IP packets; ``write(packet, t_unix)``, ``flush()``."""
+
+    LINKTYPE_RAW = 101
+
+    def __init__(self, path: str | os.PathLike, comment: str = "catc-hil") -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._f: BinaryIO = open(self.path, "wb")  # noqa: SIM115
+        shb = struct.pack("<IHHq", 0x1A2B3C4D, 1, 0, -1) + _option(1, comment.encode()) \
+            + _option(0, b"")
+        self._f.write(_block(0x0A0D0D0A, shb))
+        idb = struct.pack("<HHI", self.LINKTYPE_RAW, 0, 65535) + _option(9, b"\x06") \
+            + _option(0, b"")
+        self._f.write(_block(0x00000001, idb))
+        self._f.flush()
+        self.packets = 0
+
+    def write(self, packet: bytes, t_unix: float) -> None:
+        us = round(t_unix * 1e6)
+        body = struct.pack("<IIIII", 0, us >> 32, us & 0xFFFFFFFF, len(packet), len(packet))
+        self._f.write(_block(0x00000006, body + packet + b"\x00" * (-len(packet) % 4)))
+        self.packets += 1
+
+    def flush(self) -> None:
+        self._f.flush()
+
+    def close(self) -> None:
+        if not self._f.closed:
+            self._f.flush()
+            self._f.close()
+
+
+def can_log(path: str | os.PathLike):
+    """A python-can ASC writer at ``path``: call ``on_message_received(msg)`` per frame,
+    ``file.flush()`` per tick, ``stop()`` at the end."""
+    import can
+
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    return can.ASCWriter(str(path))

@@ -1,0 +1,67 @@
+"""Daemon settings from ``--config FILE.toml`` and command-line flags (flags win).
+
+A TOML file holds the same names as the long flags, with ``-`` or ``_`` (``host-to`` or
+``host_to``), at the top level or under a table named after the daemon (``[rve]``,
+``[obu]``).  Unknown keys, wrong types and unreadable files are errors with a one-line
+message, like a bad flag.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tomllib
+from pathlib import Path
+from typing import Any
+
+__all__ = ["ConfigError", "merge"]
+
+
+class ConfigError(ValueError):
+    """A bad config file; ``str()`` is the one-line message."""
+
+
+def _load(path: Path, section: str) -> dict[str, Any]:
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except OSError as err:
+        raise ConfigError(f"config {path}: {err.strerror or err}") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
+        raise ConfigError(f"config {path}: not valid TOML: {err}") from None
+    scoped = data.pop(section, {})
+    if not isinstance(scoped, dict):
+        raise ConfigError(f"config {path}: [{section}] must be a table")
+    data.update(scoped)
+    return {k.replace("-", "_"): v for k, v in data.items()}
+
+
+def merge(parser: argparse.ArgumentParser, args: argparse.Namespace, section: str,
+          defaults: dict[str, Any]) -> argparse.Namespace:
+    """Fill every option left unset on the command line (``None``) from ``args.config``
+    (when given), then from ``defaults``.  Values from the file pass through the option's
+    own ``type`` so they are checked like flags."""
+    from_file: dict[str, Any] = {}
+    if getattr(args, "config", None):
+        from_file = _load(Path(args.config), section)
+    actions = {a.dest: a for a in parser._actions if a.dest not in ("help", "config")}
+    unknown = sorted(set(from_file) - set(actions))
+    if unknown:
+        raise ConfigError(f"config {args.config}: unknown setting(s) {', '.join(unknown)}")
+    for dest, action in actions.items():
+        if getattr(args, dest, None) is not None:
+            continue
+        if dest in from_file:
+            value = from_file[dest]
+            if action.type is not None and not isinstance(value, bool):
+                try:
+                    value = action.type(str(value))
+                except (ValueError, argparse.ArgumentTypeError) as err:
+                    raise ConfigError(f"config {args.config}: {dest}: {err}") from None
+            elif isinstance(action, argparse._StoreTrueAction) and not isinstance(value, bool):
+                raise ConfigError(f"config {args.config}: {dest} must be true or false")
+            if action.choices is not None and value not in action.choices:
+                raise ConfigError(f"config {args.config}: {dest} must be one of "
+                                  f"{', '.join(map(str, action.choices))}")
+            setattr(args, dest, value)
+        elif dest in defaults:
+            setattr(args, dest, defaults[dest])
+    return args

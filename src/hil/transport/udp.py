@@ -1,0 +1,223 @@
+"""UDP transport: one MessageFrame per datagram, one port per channel (asyncio-dgram).
+
+Sender options: ``to=(host, port)`` for the RV frames and ``host_to=(host, port)`` for
+the host vehicle's frames.  Receiver options: ``listen=(host, port)`` and
+``host_listen=(host, port)``; ``rcvbuf`` (default 4 MiB) is the socket receive buffer
+asked for, so that a burst of hundreds of datagrams is not lost at the socket while the
+OBU computes a tick; ``max_frame`` (default 2,000 octets) is the largest datagram taken
+as a frame.  Hosts are IPv4 or IPv6 addresses or names.
+
+Counters (``stats``):
+
+* sender: ``frames`` and ``bytes`` handed to the kernel, ``rv`` and ``host`` frames per
+  channel, ``errors`` and one counter per errno name (``econnrefused`` when nothing
+  listens on a loopback port: the ICMP refusal arrives after the datagram, so it is
+  counted at a later send or at close).  A send error never raises.
+* receiver: ``frames``, ``bytes``, ``rv``, ``host``; ``oversized`` datagrams (longer
+  than ``max_frame``, dropped); ``errors`` and per errno name; ``rcvbuf``, the receive
+  buffer the kernel granted, in octets as ``getsockopt(SO_RCVBUF)`` reports it (Linux
+  doubles the request for its bookkeeping and caps it at ``net.core.rmem_max`` unless
+  the process may use ``SO_RCVBUFFORCE``, which is tried first).
+
+The receiver's ``addresses`` maps each channel to the (host, port) it is bound to.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import errno
+import logging
+import socket
+import time
+
+import asyncio_dgram
+
+from hil.transport import Received, Receiver, Sender, TransportError, count, os_reason
+
+__all__ = ["DEFAULT_MAX_FRAME", "DEFAULT_RCVBUF", "open_receiver", "open_sender"]
+
+log = logging.getLogger(__name__)
+
+DEFAULT_RCVBUF = 4 * 1024 * 1024
+DEFAULT_MAX_FRAME = 2000
+
+Address = tuple[str, int]
+
+
+def _text(addr: Address) -> str:
+    host, port = addr[0], addr[1]
+    return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+
+
+def _port(addr: Address, verb: str) -> int:
+    try:
+        port = int(addr[1])
+    except (TypeError, ValueError, IndexError):
+        port = -1
+    if not 0 <= port <= 65535:
+        raise TransportError(f"cannot {verb} udp {addr!r}: not a (host, port 0-65535) pair")
+    return port
+
+
+def _count_error(stats: dict[str, int], exc: OSError) -> None:
+    count(stats, "errors")
+    count(stats, errno.errorcode.get(exc.errno or -1, "oserror").lower())
+
+
+class UdpSender(Sender):
+    """Two connected UDP sockets, one per channel."""
+
+    def __init__(self, streams: dict[str, asyncio_dgram.aio.DatagramClient]) -> None:
+        self._streams = streams
+        self._closed = False
+        self.stats = {"frames": 0, "bytes": 0, "rv": 0, "host": 0, "errors": 0}
+
+    def _collect(self, stream: asyncio_dgram.aio.DatagramClient) -> None:
+        """Count the errors the kernel reported on ``stream`` since the last call."""
+        while True:
+            try:
+                _ = stream.exception  # raises the oldest unconsumed error, if any
+                return
+            except OSError as exc:
+                _count_error(self.stats, exc)
+
+    async def _send(self, channel: str, frame: bytes) -> None:
+        if self._closed:
+            raise TransportError("udp sender is closed")
+        stream = self._streams[channel]
+        self._collect(stream)
+        try:
+            await stream.send(frame)
+        except OSError as exc:
+            _count_error(self.stats, exc)
+            return
+        self._collect(stream)
+        count(self.stats, "frames")
+        count(self.stats, "bytes", len(frame))
+        count(self.stats, channel)
+
+    async def send(self, frame: bytes) -> None:
+        await self._send("rv", frame)
+
+    async def send_host(self, frame: bytes) -> None:
+        await self._send("host", frame)
+
+    async def aclose(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        for stream in self._streams.values():
+            self._collect(stream)
+            stream.close()
+
+
+async def open_sender(*, to: Address, host_to: Address) -> UdpSender:
+    """Connect one UDP socket to ``to`` (RV frames) and one to ``host_to`` (HV frames)."""
+    targets = {"rv": (to[0], _port(to, "reach")), "host": (host_to[0], _port(host_to, "reach"))}
+    streams: dict[str, asyncio_dgram.aio.DatagramClient] = {}
+    for channel, addr in targets.items():
+        try:
+            streams[channel] = await asyncio_dgram.connect(addr)
+        except (OSError, ValueError) as exc:
+            for stream in streams.values():
+                stream.close()
+            raise TransportError(f"cannot reach udp {_text(addr)}: {os_reason(exc)}") from exc
+    return UdpSender(streams)
+
+
+def _bound_socket(addr: Address, rcvbuf: int) -> tuple[socket.socket, int]:
+    """A UDP socket bound to ``addr`` with a receive buffer of ``rcvbuf`` octets asked
+    for; the socket and the size the kernel granted."""
+    port = _port(addr, "bind")
+    try:
+        family, kind, proto, _, sockaddr = socket.getaddrinfo(
+            addr[0], port, type=socket.SOCK_DGRAM)[0]
+        sock = socket.socket(family, kind, proto)
+    except OSError as exc:
+        raise TransportError(f"cannot bind udp {_text(addr)}: {os_reason(exc)}") from exc
+    try:
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUFFORCE, rcvbuf)
+        except (OSError, AttributeError):  # no CAP_NET_ADMIN, or not Linux
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
+        sock.bind(sockaddr)
+    except OSError as exc:
+        sock.close()
+        raise TransportError(f"cannot bind udp {_text(addr)}: {os_reason(exc)}") from exc
+    granted = sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+    if granted < rcvbuf:
+        log.warning("udp %s: receive buffer %d octets granted, %d asked for "
+                    "(raise net.core.rmem_max)", _text(addr), granted, rcvbuf)
+    return sock, granted
+
+
+class UdpReceiver(Receiver):
+    """Two bound UDP sockets; a task per socket moves datagrams into one queue."""
+
+    def __init__(self, streams: dict[str, asyncio_dgram.aio.DatagramServer], rcvbuf: int,
+                 max_frame: int) -> None:
+        self._streams = streams
+        #: The bound (host, port) of each channel (useful after binding port 0).
+        self.addresses = {ch: s.sockname[:2] for ch, s in streams.items()}
+        self._max_frame = max_frame
+        self._queue: asyncio.Queue[Received | None] = asyncio.Queue()
+        self._closed = False
+        self.stats = {"frames": 0, "bytes": 0, "rv": 0, "host": 0, "oversized": 0,
+                      "errors": 0, "rcvbuf": rcvbuf}
+        self._pumps = [asyncio.create_task(self._pump(ch, s), name=f"udp-recv-{ch}")
+                       for ch, s in streams.items()]
+
+    async def _pump(self, channel: str, stream: asyncio_dgram.aio.DatagramServer) -> None:
+        while True:
+            try:
+                data, _ = await stream.recv()
+            except asyncio_dgram.TransportClosed:
+                return
+            except OSError as exc:
+                _count_error(self.stats, exc)
+                continue
+            if len(data) > self._max_frame:
+                count(self.stats, "oversized")
+                continue
+            self._queue.put_nowait(Received(channel, data, time.monotonic()))
+            count(self.stats, "frames")
+            count(self.stats, "bytes", len(data))
+            count(self.stats, channel)
+
+    async def recv(self) -> Received:
+        got = await self._queue.get()
+        if got is None:
+            self._queue.put_nowait(None)  # every later recv() fails the same way
+            raise TransportError("udp receiver is closed")
+        return got
+
+    async def aclose(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        for task in self._pumps:
+            task.cancel()
+        for task in self._pumps:
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        for stream in self._streams.values():
+            stream.close()
+        self._queue.put_nowait(None)
+
+
+async def open_receiver(*, listen: Address, host_listen: Address, rcvbuf: int = DEFAULT_RCVBUF,
+                        max_frame: int = DEFAULT_MAX_FRAME) -> UdpReceiver:
+    """Bind one UDP socket to ``listen`` (RV frames) and one to ``host_listen``."""
+    socks: dict[str, socket.socket] = {}
+    granted: list[int] = []
+    try:
+        for channel, addr in (("rv", listen), ("host", host_listen)):
+            socks[channel], size = _bound_socket(addr, rcvbuf)
+            granted.append(size)
+    except TransportError:
+        for sock in socks.values():
+            sock.close()
+        raise
+    streams = {ch: await asyncio_dgram.from_socket(sock) for ch, sock in socks.items()}
+    return UdpReceiver(streams, min(granted), max_frame)

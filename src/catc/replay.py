@@ -13,6 +13,8 @@ messages at the same ticks.
   unavailable.  Brake status is not in the mobility table; ``brakes`` stays unavailable.
 * Delivery: the HV ticks at its own samples; each RV message generated in ``(T_prev, T]``
   is delivered at tick ``T`` (zero latency) when the channel passes it.
+* :func:`plan` is the RVE's whole send plan (rate, loss, distance, latency from
+  :mod:`catc.channel`): the frame events in the order they go on the air.
 """
 
 from __future__ import annotations
@@ -20,14 +22,16 @@ from __future__ import annotations
 import math
 import zlib
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from catc.bsm import BSM
 from catc.cam import ContextAwareMap, MapSnapshot
+from catc.channel import ChannelConfig, schedule
 from catc.mobility import MobilityTable, Track
 
-__all__ = ["run_offline", "temp_id", "ticks", "track_bsm"]
+__all__ = ["EVENT_DTYPE", "Plan", "plan", "run_offline", "temp_id", "ticks", "track_bsm"]
 
 
 def temp_id(vehicle_id: str) -> int:
@@ -87,3 +91,81 @@ def run_offline(table: MobilityTable, cam: ContextAwareMap, host_id: str | None 
     """Drive ``cam`` through ``table`` (see :func:`ticks`), yielding each snapshot."""
     for now, host, msgs in ticks(table, host_id, received):
         yield cam.step(now, host, msgs)
+
+
+# --- the send plan of a replay: what goes on the air when ---------------------------------------
+
+#: One row per frame event of a replay, sorted by ``time``: the HV's state on its own
+#: channel (never lost), and every message the RVs send (delivered or dropped).
+EVENT_DTYPE = np.dtype([
+    ("time", np.float64),  # dataset time the frame goes out (t + delay), or t if dropped
+    ("t", np.float64),  # generation time
+    ("vehicle", np.int32),  # index into Plan.vehicles
+    ("index", np.int64),  # sample index in the vehicle's track
+    ("seq", np.int64),  # number among the vehicle's sent messages (msgCnt = seq mod 128)
+    ("host", np.bool_),  # the HV channel
+    ("dropped", np.bool_),
+    ("cause", np.int8),  # catc.channel.CAUSES
+    ("delay", np.float64),  # s; NaN when dropped
+])
+
+
+@dataclass(frozen=True, eq=False)
+class Plan:
+    """A replay's frame events (:data:`EVENT_DTYPE`) and the vehicles they refer to."""
+
+    table: MobilityTable
+    host_id: str
+    vehicles: tuple[str, ...]  # names; index 0 is the host
+    events: np.ndarray
+    config: ChannelConfig
+    seed: int
+
+    def bsm(self, event: np.void) -> BSM:
+        """The BSM of one event (msgCnt from the send sequence)."""
+        tr = self.table.tracks[self.vehicles[int(event["vehicle"])]]
+        m = track_bsm(tr, int(event["index"]))
+        return replace(m, msg_cnt=int(event["seq"]) % 128)
+
+
+def plan(table: MobilityTable, config: ChannelConfig, seed: int = 0,
+         host_id: str | None = None, duration: float | None = None) -> Plan:
+    """Every frame event of a replay of ``table`` through the channel ``config``.
+
+    The HV sends every sample on its own channel with no loss and no delay; each RV's
+    messages follow :func:`catc.channel.schedule` keyed by ``(seed, "TRIP/VEHICLE")``,
+    with the HV–RV distance of each sample for the distance model.  Events are sorted by
+    time, RV frames before the HV frame of the same instant (so a receiver that steps on
+    the HV frame has the RV frames generated up to then), then by vehicle.  ``duration``
+    keeps the events of the first ``duration`` seconds after the HV's first sample.
+    """
+    host_id = host_id or table.default_host
+    if host_id is None or host_id not in table.tracks:
+        raise ValueError(f"table {table.name!r} has no host vehicle {host_id!r}; "
+                         f"vehicles: {', '.join(table.tracks)}")
+    host = table.tracks[host_id]
+    names = (host_id, *(v for v in table.tracks if v != host_id))
+    parts = []
+    n = len(host)
+    hv = np.zeros(n, dtype=EVENT_DTYPE)
+    hv["time"] = hv["t"] = host.t
+    hv["index"] = hv["seq"] = np.arange(n)
+    hv["host"] = True
+    hv["delay"] = 0.0
+    parts.append(hv)
+    for k, vid in enumerate(names[1:], start=1):
+        tr = table.tracks[vid]
+        dist = np.hypot(tr.x - np.interp(tr.t, host.t, host.x),
+                        tr.y - np.interp(tr.t, host.t, host.y))
+        sch = schedule(config, seed, f"{table.name}/{vid}", tr.t, dist)
+        ev = np.zeros(len(sch), dtype=EVENT_DTYPE)
+        ev["t"], ev["index"], ev["seq"] = sch["t"], sch["index"], sch["seq"]
+        ev["dropped"], ev["cause"], ev["delay"] = sch["dropped"], sch["cause"], sch["delay"]
+        ev["time"] = np.where(sch["dropped"], sch["t"], sch["t"] + np.nan_to_num(sch["delay"]))
+        ev["vehicle"] = k
+        parts.append(ev)
+    events = np.concatenate(parts)
+    if duration is not None:
+        events = events[events["t"] <= float(host.t[0]) + duration + 1e-9]
+    order = np.lexsort((events["vehicle"], events["host"], events["time"]))
+    return Plan(table, host_id, names, events[order], config, seed)

@@ -1,7 +1,7 @@
 """``rve``: the Remote Vehicle Emulator.
 
-The replay daemon (``rve run``) arrives with its own issue; today the command
-offers the encoder that the daemon will use, on its own.
+``rve run`` is the replay daemon (:mod:`rve.run`); ``rve encode`` the encoder it uses, on
+its own.
 """
 
 from __future__ import annotations
@@ -19,6 +19,8 @@ from catc.records import KEYS, bsm_from_record
 DESCRIPTION = """\
 Remote Vehicle Emulator: replays mobility logs as SAE J2735 BSM frames.
 
+  run      replay a mobility log as BSM frames in real time over UDP or CAN, with
+           scheduled dropouts, and record ground truth
   encode   turn BSM records (JSON lines) into UPER MessageFrames"""
 
 ENCODE_HELP = f"""\
@@ -45,8 +47,28 @@ def _encode(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run(args: argparse.Namespace) -> int:
+    from hil.config import ConfigError, merge
+    from rve import run
+
+    try:
+        merge(args.parser, args, "rve", run.DEFAULTS)
+    except ConfigError as err:
+        print(f"rve run: {err}", file=sys.stderr)
+        return 2
+    del args.parser
+    return run.run(args)
+
+
 def main(argv: list[str] | None = None) -> int:
+    from rve import run
+
     parser, sub = make_parser("rve", DESCRIPTION)
+    r = sub.add_parser("run", help="replay a mobility log as BSMs over UDP or CAN",
+                       description=run.__doc__,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    run.add_arguments(r)
+    r.set_defaults(func=_run, parser=r)
     p = sub.add_parser("encode", help="BSM records (JSON lines) to UPER frames",
                        description=ENCODE_HELP,
                        formatter_class=argparse.RawDescriptionHelpFormatter)

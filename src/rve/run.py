@@ -1,0 +1,350 @@
+"""``rve run``: the Remote Vehicle Emulator daemon.
+
+It loads a mobility log, plans the replay through the channel model (``catc.replay.plan``:
+rate, loss, bursts, distance, latency, all seeded), then sends every frame at its
+deadline in real time (``hil.pacing``, absolute deadlines, ``--speed`` factor or
+``--asap``) over UDP or CAN (``hil.transport``): the RVs' BSMs on one channel, the host
+vehicle's own state on another with no loss.  The capture directory receives, append-only
+and flushed at every host tick:
+
+* ``rve.config.json``: the run's settings, versions and vehicle ids;
+* ``rve.truth.jsonl``: the true state of every vehicle at every 10 Hz sample;
+* ``rve.schedule.jsonl``: every scheduled message with its channel decision (dropped,
+  cause, delay) and, when sent, the wall-clock send time and its lateness;
+* ``rve.frames.pcapng`` (UDP, with IP/UDP headers; Wireshark opens it) or
+  ``rve.frames.asc`` (every raw CAN frame, python-can ASC).
+
+Errors: a bad dataset, flag or config file prints one line and exits 2, and so does an
+unreachable address or bus.  SIGINT and SIGTERM stop the replay, flush and exit 0.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import dataclasses
+import json
+import signal
+import socket
+import sys
+import time
+from collections import deque
+from importlib import metadata, resources
+from pathlib import Path
+
+import numpy as np
+
+from catc.channel import CAUSES, ChannelConfig
+from catc.j2735 import encode_frame
+from catc.j2735.ieee1609 import wrap_unsecured
+from catc.replay import Plan, plan, temp_id
+from hil.capture import JsonLines, PcapngWriter, can_log, udp_packet
+from hil.pacing import Pacer
+
+__all__ = ["DEFAULTS", "add_arguments", "run"]
+
+#: Settings when neither a flag nor the config file gives them.
+DEFAULTS = {
+    "dataset": "scenario:highway-braking", "transport": "udp", "to": "127.0.0.1:4500",
+    "host_to": "127.0.0.1:4501", "per": 0.0, "burst": 1.0, "rate": 10.0, "latency": 0.0,
+    "jitter": 0.0, "seed": 0, "speed": 1.0, "asap": False, "capture": None,
+    "duration": None, "host": None, "trip": None, "ieee1609": False, "distance": False,
+    "can_interface": "virtual", "can_channel": None, "can_fd": False, "progress": True,
+}
+
+
+def _address(text: str) -> tuple[str, int]:
+    host, sep, port = text.rpartition(":")
+    if not sep or not port.isdigit() or not 0 < int(port) < 65536:
+        raise argparse.ArgumentTypeError(f"not HOST:PORT: {text!r}")
+    return host.strip("[]") or "127.0.0.1", int(port)
+
+
+def _percent(text: str) -> float:
+    value = float(text)
+    if not 0.0 <= value <= 100.0:
+        raise argparse.ArgumentTypeError(f"a percentage from 0 to 100, got {text}")
+    return value
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of ``rve run`` (DESIGN.md's contract); unset ones come from --config."""
+    p.add_argument("--config", metavar="FILE.toml", help="settings file; flags override it")
+    p.add_argument("--dataset", metavar="SPEC",
+                   help="PATH, KIND:PATH or scenario:NAME (default scenario:highway-braking)")
+    p.add_argument("--trip", metavar="NAME", help="which trip of a multi-trip dataset "
+                   "(default the first)")
+    p.add_argument("--host", metavar="ID", help="host vehicle (default: the dataset's)")
+    p.add_argument("--transport", choices=("udp", "can"), help="udp (default) or can")
+    p.add_argument("--to", type=_address, help="UDP HOST:PORT of the RV frames "
+                   "(default 127.0.0.1:4500)")
+    p.add_argument("--host-to", type=_address, help="UDP HOST:PORT of the host "
+                   "vehicle's frames (default 127.0.0.1:4501)")
+    p.add_argument("--per", type=_percent, help="packet error rate, %% (default 0)")
+    p.add_argument("--burst", type=float, help="mean burst length in messages; 1 = "
+                   "independent losses (default 1)")
+    p.add_argument("--rate", type=float, help="transmission rate, 1-10 Hz (default 10)")
+    p.add_argument("--latency", type=float, metavar="MS", help="fixed latency, ms")
+    p.add_argument("--jitter", type=float, metavar="MS", help="each frame is delayed a "
+                   "further U(0, jitter) ms; reordering happens")
+    p.add_argument("--distance", action="store_true", default=None,
+                   help="also lose messages by HV-RV distance (catc.channel curve)")
+    p.add_argument("--seed", type=int, help="seed of the loss and jitter pattern")
+    p.add_argument("--speed", type=float, help="replay speed factor (default 1 = real time)")
+    p.add_argument("--asap", action="store_true", default=None,
+                   help="send as fast as possible (no pacing)")
+    p.add_argument("--duration", type=float, metavar="S", help="stop after S s of data")
+    p.add_argument("--capture", metavar="DIR", help="capture directory (see rve run --help)")
+    p.add_argument("--ieee1609", action="store_true", default=None,
+                   help="wrap each frame in an unsecured IEEE 1609.2 envelope")
+    p.add_argument("--can-interface", choices=("socketcan", "virtual", "udp_multicast"),
+                   help="python-can interface for --transport can (default virtual)")
+    p.add_argument("--can-channel", metavar="NAME", help="CAN channel, e.g. vcan0")
+    p.add_argument("--can-fd", action="store_true", default=None, help="CAN FD frames")
+    p.add_argument("--no-progress", dest="progress", action="store_false", default=None,
+                   help="no progress line on stderr")
+
+
+def load_table(spec: str, trip: str | None):
+    """The trip to replay (one-line ValueError when it cannot be loaded)."""
+    from captures.datasets import DatasetError, load
+
+    if spec.startswith("scenario:"):
+        name = spec.split(":", 1)[1]
+        path = resources.files("rve").joinpath("scenarios", f"{name}.fcd.xml")
+        if not path.is_file():
+            raise ValueError(f"unknown scenario {name!r} (see rve scenario --help)")
+        spec = f"sumo:{path}"
+    try:
+        tables = load(spec)
+    except DatasetError as err:
+        raise ValueError(str(err)) from None
+    if trip is None:
+        return tables[0]
+    for t in tables:
+        if t.name == trip:
+            return t
+    raise ValueError(f"dataset {spec!r} has no trip {trip!r}; trips: "
+                     f"{', '.join(t.name for t in tables[:10])}")
+
+
+class _Capture:
+    """The RVE's capture files (module docstring)."""
+
+    def __init__(self, directory: Path, the_plan: Plan, args: argparse.Namespace) -> None:
+        self.dir = directory
+        directory.mkdir(parents=True, exist_ok=True)
+        self.schedule = JsonLines(directory / "rve.schedule.jsonl")
+        self.truth = JsonLines(directory / "rve.truth.jsonl")
+        self.pcap = PcapngWriter(directory / "rve.frames.pcapng") \
+            if args.transport == "udp" else None
+        self.canlog = can_log(directory / "rve.frames.asc") if args.transport == "can" else None
+        table = the_plan.table
+        config = {
+            "settings": {k: (list(v) if isinstance(v, tuple) else v)
+                         for k, v in vars(args).items() if k not in ("func",)},
+            "versions": {"catc-hil": _version(), "python": sys.version.split()[0]},
+            "dataset": {"name": table.name, "kind": table.kind, "origin": table.origin},
+            "host": the_plan.host_id,
+            "vehicles": {v: f"{temp_id(v):08X}" for v in the_plan.vehicles},
+            "channel": dataclasses.asdict(the_plan.config),
+            "seed": the_plan.seed,
+            "started_unix": time.time(),
+        }
+        with open(directory / "rve.config.json", "w", encoding="utf-8") as f:
+            json.dump(config, f, indent=1, default=str)
+        self._truth_pos = {v: 0 for v in the_plan.vehicles}
+
+    def write_truth(self, the_plan: Plan, up_to: float) -> None:
+        """Truth rows of every vehicle for samples generated at or before ``up_to``."""
+        for v in the_plan.vehicles:
+            tr = the_plan.table.tracks[v]
+            lo = self._truth_pos[v]
+            hi = int(np.searchsorted(tr.t, up_to + 1e-9, side="right"))
+            for i in range(lo, hi):
+                self.truth.write({
+                    "vehicle": v, "id": f"{temp_id(v):08X}", "index": i, "t": float(tr.t[i]),
+                    "lat": float(tr.lat[i]), "lon": float(tr.lon[i]), "x": float(tr.x[i]),
+                    "y": float(tr.y[i]), "speed": float(tr.speed[i]),
+                    "heading": float(tr.heading[i]), "accel": float(tr.accel[i]),
+                    "yaw_rate": float(tr.yaw_rate[i]), "host": v == the_plan.host_id})
+            self._truth_pos[v] = hi
+
+    def flush(self) -> None:
+        self.schedule.flush()
+        self.truth.flush()
+        if self.pcap is not None:
+            self.pcap.flush()
+        if self.canlog is not None:
+            self.canlog.file.flush()
+
+    def close(self) -> None:
+        self.schedule.close()
+        self.truth.close()
+        if self.pcap is not None:
+            self.pcap.close()
+        if self.canlog is not None:
+            self.canlog.stop()
+
+
+def _version() -> str:
+    try:
+        return metadata.version("catc-hil")
+    except metadata.PackageNotFoundError:
+        return "unknown"
+
+
+class _Progress:
+    """A status line on stderr every second: dataset time, sent, dropped, lateness."""
+
+    def __init__(self, enabled: bool) -> None:
+        self.enabled = enabled
+        self.tty = sys.stderr.isatty()
+        self.last = time.monotonic()
+        self.late: deque[float] = deque(maxlen=5000)
+
+    def update(self, t: float, t0: float, sent: int, dropped: int, late_s: float,
+               final: bool = False) -> None:
+        self.late.append(late_s)
+        now = time.monotonic()
+        if not self.enabled or (now - self.last < 1.0 and not final):
+            return
+        self.last = now
+        p99 = 1000 * float(np.percentile(self.late, 99)) if self.late else 0.0
+        line = (f"rve: t={t - t0:8.1f} s  sent {sent}  dropped {dropped}  "
+                f"late p99 {p99:.2f} ms")
+        sys.stderr.write(("\r" + line) if self.tty and not final else (line + "\n"))
+        sys.stderr.flush()
+
+
+async def _open_sender(args: argparse.Namespace, on_frame):
+    from hil.transport import open_sender
+
+    if args.transport == "udp":
+        return await open_sender("udp", to=args.to, host_to=args.host_to)
+    return await open_sender("can", interface=args.can_interface, channel=args.can_channel,
+                             fd=bool(args.can_fd), on_frame=on_frame)
+
+
+async def replay(args: argparse.Namespace, the_plan: Plan,
+                 lateness: list[float] | None = None) -> dict[str, int]:
+    """Send the plan in real time (or as fast as possible); returns the counters.
+    ``lateness`` collects every sent frame's send time minus its deadline (s)."""
+    cap = _Capture(Path(args.capture), the_plan, args) if args.capture else None
+    on_frame = cap.canlog.on_message_received if cap is not None and cap.canlog else None
+    sender = await _open_sender(args, on_frame)
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    events = the_plan.events
+    tids = [temp_id(v) for v in the_plan.vehicles]
+    t0 = float(events["time"][0]) if len(events) else 0.0
+    pacer = Pacer(t0, None if args.asap else args.speed)
+    progress = _Progress(args.progress)
+    src = ("127.0.0.1", 0)
+    if args.transport == "udp" and cap is not None:
+        family = socket.AF_INET6 if ":" in args.to[0] else socket.AF_INET
+        src = ("::1" if family == socket.AF_INET6 else "127.0.0.1", 0)
+    counts = {"sent": 0, "dropped": 0, "host": 0}
+    times = events["time"].tolist()
+    try:
+        i, n = 0, len(events)
+        while i < n and not stop.is_set():
+            due = times[i]
+            j = i
+            while j < n and times[j] == due:
+                j += 1
+            batch = events[i:j]
+            # Encode before the deadline, send at it, write the capture after the sends.
+            frames = [_frame(ev, the_plan, args.ieee1609) for ev in batch]
+            await pacer.wait(due)
+            deadline = pacer.deadline(due)
+            sent_at = []
+            for ev, frame in zip(batch, frames, strict=True):
+                if frame is None:
+                    sent_at.append(None)
+                    continue
+                await (sender.send_host(frame) if ev["host"] else sender.send(frame))
+                sent_at.append((time.time(), 0.0 if args.asap
+                                else max(0.0, pacer.clock() - deadline)))
+            for ev, frame, when in zip(batch, frames, sent_at, strict=True):
+                _account(ev, frame, when, the_plan, args, cap, counts, tids, src, lateness)
+            if when is not None:
+                progress.update(float(ev["time"]), t0, counts["sent"], counts["dropped"],
+                                when[1])
+            if cap is not None and bool(events["host"][j - 1]):
+                cap.write_truth(the_plan, due)
+                cap.flush()
+            i = j
+    finally:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.remove_signal_handler(sig)
+        await sender.aclose()
+        if cap is not None:
+            cap.flush()
+            cap.close()
+        last = float(events["time"][min(i, len(events) - 1)]) if len(events) else 0.0
+        progress.update(last, t0, counts["sent"], counts["dropped"], 0.0, final=True)
+    counts["interrupted"] = int(stop.is_set())
+    return counts
+
+
+def _frame(ev, the_plan: Plan, ieee1609: bool) -> bytes | None:
+    """The wire frame of one event (None when the channel drops it)."""
+    if ev["dropped"]:
+        return None
+    frame = encode_frame(the_plan.bsm(ev))
+    return wrap_unsecured(frame) if ieee1609 else frame
+
+
+def _account(ev, frame, when, the_plan: Plan, args, cap, counts, tids, src,
+             lateness: list[float] | None) -> None:
+    """Counters, lateness and capture records of one event after its batch was sent."""
+    host = bool(ev["host"])
+    if frame is None:
+        counts["dropped"] += 1
+    else:
+        counts["host" if host else "sent"] += 1
+        if lateness is not None and not host:
+            lateness.append(when[1])
+    if cap is None:
+        return
+    record = {"vehicle": the_plan.vehicles[int(ev["vehicle"])],
+              "id": f"{tids[int(ev['vehicle'])]:08X}", "channel": "host" if host else "rv",
+              "index": int(ev["index"]), "seq": int(ev["seq"]), "t": float(ev["t"]),
+              "dropped": bool(ev["dropped"]), "cause": CAUSES[int(ev["cause"])],
+              "delay": None if ev["dropped"] else float(ev["delay"])}
+    if frame is not None:
+        record.update(sent_unix=when[0], late_ms=round(when[1] * 1000.0, 4),
+                      octets=len(frame))
+        if cap.pcap is not None:
+            cap.pcap.write(udp_packet(src, args.host_to if host else args.to, frame), when[0])
+    cap.schedule.write(record)
+
+
+def run(args: argparse.Namespace) -> int:
+    """``rve run`` after flags and config are merged; the exit status."""
+    from hil.transport import TransportError
+
+    try:
+        table = load_table(args.dataset, args.trip)
+        config = ChannelConfig(per=args.per / 100.0, burst=args.burst, rate_hz=args.rate,
+                               latency_s=args.latency / 1000.0,
+                               jitter_s=args.jitter / 1000.0, distance=bool(args.distance))
+        the_plan = plan(table, config, args.seed, args.host, args.duration)
+        if args.speed is not None and not args.speed > 0:
+            raise ValueError(f"--speed must be > 0, got {args.speed}")
+    except ValueError as err:
+        print(f"rve run: {err}", file=sys.stderr)
+        return 2
+    try:
+        counts = asyncio.run(replay(args, the_plan))
+    except TransportError as err:
+        print(f"rve run: {err}", file=sys.stderr)
+        return 2
+    print(json.dumps({"sent": counts["sent"], "dropped": counts["dropped"],
+                      "host_frames": counts["host"], "interrupted": bool(counts["interrupted"]),
+                      "vehicles": len(the_plan.vehicles) - 1, "host": the_plan.host_id}),
+          flush=True)
+    return 0

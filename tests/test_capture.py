@@ -1,0 +1,96 @@
+"""Capture writers: pcapng read back block by block (an independent parser written from the
+pcapng specification), JSON lines append-only and flushed, the ASC CAN log readable by
+python-can."""
+
+from __future__ import annotations
+
+import json
+import struct
+
+import can
+import pytest
+
+from hil.capture import JsonLines, PcapngWriter, can_log, udp_packet
+
+
+def read_pcapng(data: bytes) -> tuple[int, list[tuple[float, bytes]]]:
+    """(link type, [(timestamp, packet)]) from a little-endian pcapng with µs timestamps."""
+    pos, linktype, packets = 0, None, []
+    while pos < len(data):
+        btype, total = struct.unpack_from("<II", data, pos)
+        assert total % 4 == 0 and total >= 12
+        assert struct.unpack_from("<I", data, pos + total - 4)[0] == total
+        body = data[pos + 8: pos + total - 4]
+        if btype == 0x0A0D0D0A:
+            assert struct.unpack_from("<IHH", body)[0:3] == (0x1A2B3C4D, 1, 0)
+        elif btype == 1:
+            linktype = struct.unpack_from("<H", body)[0]
+        elif btype == 6:
+            _, hi, lo, cap, orig = struct.unpack_from("<IIIII", body)
+            assert cap == orig
+            packets.append((((hi << 32) | lo) / 1e6, body[20:20 + cap]))
+        pos += total
+    assert pos == len(data)
+    return linktype, packets
+
+
+def test_pcapng_holds_every_udp_datagram_with_its_headers(tmp_path):
+    w = PcapngWriter(tmp_path / "f.pcapng")
+    payloads = [bytes(range(n % 256)) * (1 + n // 256) for n in (1, 40, 177, 300)]
+    for i, p in enumerate(payloads):
+        w.write(udp_packet(("127.0.0.1", 40000), ("127.0.0.1", 4500), p), 1.7e9 + i * 0.1)
+    w.write(udp_packet(("::1", 40000), ("::1", 4501), b"six"), 1.7e9 + 1.0)
+    w.close()
+    linktype, pkts = read_pcapng((tmp_path / "f.pcapng").read_bytes())
+    assert linktype == 101 and len(pkts) == 5
+    for (t, pkt), p, i in zip(pkts, payloads, range(4), strict=False):
+        assert t == pytest.approx(1.7e9 + i * 0.1, abs=1e-6)
+        assert pkt[0] >> 4 == 4 and pkt[9] == 17  # IPv4, UDP
+        sport, dport, length, _ = struct.unpack_from("!HHHH", pkt, 20)
+        assert (sport, dport, length) == (40000, 4500, 8 + len(p))
+        assert pkt[28:] == p
+        # the IPv4 header checksum verifies
+        s = sum(struct.unpack("!10H", pkt[:20]))
+        while s >> 16:
+            s = (s & 0xFFFF) + (s >> 16)
+        assert s == 0xFFFF
+    v6 = pkts[4][1]
+    assert v6[0] >> 4 == 6 and v6[6] == 17 and v6[48:] == b"six"
+
+
+def test_pcapng_is_readable_up_to_the_last_flush_while_open(tmp_path):
+    w = PcapngWriter(tmp_path / "f.pcapng")
+    w.write(udp_packet(("127.0.0.1", 1), ("127.0.0.1", 2), b"x" * 10), 1.0)
+    w.flush()
+    _, pkts = read_pcapng((tmp_path / "f.pcapng").read_bytes())
+    assert len(pkts) == 1
+    w.close()
+
+
+def test_json_lines_append_and_flush(tmp_path):
+    path = tmp_path / "cap" / "x.jsonl"
+    w = JsonLines(path)
+    w.write({"a": 1})
+    w.flush()
+    assert path.read_text() == '{"a":1}\n'
+    w.write({"b": float("nan")})
+    w.close()
+    w2 = JsonLines(path)  # append, never truncate
+    w2.write({"c": 3})
+    w2.close()
+    lines = path.read_text().splitlines()
+    assert [list(json.loads(line)) for line in lines] == [["a"], ["b"], ["c"]]
+
+
+def test_asc_can_log_round_trips_through_python_can(tmp_path):
+    log = can_log(tmp_path / "frames.asc")
+    msgs = [can.Message(timestamp=10.0 + i, arbitration_id=0x6A0, data=bytes([i] * 8),
+                        is_extended_id=False) for i in range(3)]
+    msgs.append(can.Message(timestamp=14.0, arbitration_id=0x6A1, data=bytes(range(64)),
+                            is_fd=True, is_extended_id=False))
+    for m in msgs:
+        log.on_message_received(m)
+    log.stop()
+    back = list(can.ASCReader(str(tmp_path / "frames.asc")))
+    assert [(m.arbitration_id, bytes(m.data)) for m in back] == \
+        [(m.arbitration_id, bytes(m.data)) for m in msgs]

@@ -228,3 +228,25 @@ def test_frames_decode_as_real_j2735():
         with pytest.raises(DecodeError):
             decode_frame(f)  # wrapped: not a bare MessageFrame
         assert decode_frame(unwrap(f).frame).lat is not None
+
+
+def test_captures_decode_reads_the_rves_own_pcapng(tmp_path):
+    sink = UdpSink()
+    try:
+        out = _run("--dataset", _openacc(), "--duration", "1", "--asap", "--per", "30",
+                   "--ieee1609", "--to", f"127.0.0.1:{sink.ports[0]}", "--host-to",
+                   f"127.0.0.1:{sink.ports[1]}", "--capture", str(tmp_path), "--no-progress")
+    finally:
+        sink.close()
+    assert out.returncode == 0, out.stderr
+    dec = subprocess.run([sys.executable, "-m", "captures.cli", "decode",
+                          str(tmp_path / "rve.frames.pcapng")], capture_output=True,
+                         text=True, timeout=60, check=False)
+    assert dec.returncode == 0, dec.stderr
+    records = [json.loads(line) for line in dec.stdout.splitlines()]
+    assert len(records) == len(sink.frames[0]) + len(sink.frames[1])
+    from catc.j2735.ieee1609 import unwrap
+
+    want = sorted((f"{b.temp_id:08X}", b.msg_cnt) for b in
+                  (decode_frame(unwrap(f).frame) for f in sink.frames[0] + sink.frames[1]))
+    assert sorted((r["id"], r["msgCnt"]) for r in records) == want

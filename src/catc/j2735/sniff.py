@@ -1,6 +1,10 @@
 """Find the J2735 frames in a capture file of unknown format (for ``captures decode FILE``).
 
-Binary input is, in this order of trial: an IEEE 1609.2 ``Ieee1609Dot2Data``
+A pcapng capture (the RVE's ``rve.frames.pcapng``, or any capture of UDP on link types
+RAW, IPv4, IPv6 or Ethernet) gives the payload of every UDP datagram, each unpacked like
+binary input below; its ``meta`` has the packet number, timestamp and UDP ports.
+
+Other binary input is, in this order of trial: an IEEE 1609.2 ``Ieee1609Dot2Data``
 (:mod:`catc.j2735.ieee1609`), an OBU log (:mod:`catc.j2735.obulog`), else raw UPER (a
 MessageFrame, or a bare BasicSafetyMessage such as the ODE's ``bsm.uper``) which the
 UPER decoder judges later; its first octet must be below 0x80 (a MessageFrame's
@@ -33,7 +37,7 @@ from catc.errors import DecodeError
 from catc.j2735 import ieee1609, obulog
 
 ACCEPTED = (
-    "expected raw UPER, hex text, IEEE 1609.2 COER, an OBU .bin log, "
+    "expected raw UPER, hex text, IEEE 1609.2 COER, an OBU .bin log, a pcapng capture, "
     "or ODE JSON/XML records carrying hex"
 )
 _HEX = re.compile(r"[0-9A-Fa-f\s]+")
@@ -48,7 +52,7 @@ class Extracted:
     """One frame found in a file, with the container it came in."""
 
     frame: bytes
-    container: str  # "uper" | "hex" | "ieee1609" | "obulog" | "ode-json" | "ode-xml"
+    container: str  # "uper" | "hex" | "ieee1609" | "obulog" | "ode-json" | "ode-xml" | "pcapng"
     meta: dict[str, Any] = field(default_factory=dict)
 
 
@@ -156,8 +160,92 @@ def _as_text(data: bytes) -> str | None:
     return None if _CONTROL.search(text) else text
 
 
+_PCAPNG_SHB = 0x0A0D0D0A
+
+
+def _udp_payload(packet: bytes, linktype: int) -> tuple[bytes, int, int] | None:
+    """(payload, source port, destination port) of a UDP packet, or None."""
+    if linktype == 1:  # Ethernet II, possibly with one 802.1Q tag
+        if len(packet) < 14:
+            return None
+        ethertype, off = int.from_bytes(packet[12:14], "big"), 14
+        if ethertype == 0x8100 and len(packet) >= 18:
+            ethertype, off = int.from_bytes(packet[16:18], "big"), 18
+        if ethertype not in (0x0800, 0x86DD):
+            return None
+        packet = packet[off:]
+    elif linktype not in (101, 228, 229):
+        return None
+    if not packet:
+        return None
+    version = packet[0] >> 4
+    if version == 4 and len(packet) >= 20 and packet[9] == 17:
+        udp = packet[(packet[0] & 0x0F) * 4:]
+    elif version == 6 and len(packet) >= 40 and packet[6] == 17:
+        udp = packet[40:]
+    else:
+        return None
+    if len(udp) < 8:
+        return None
+    length = int.from_bytes(udp[4:6], "big")
+    return (udp[8:length] if 8 <= length <= len(udp) else udp[8:],
+            int.from_bytes(udp[0:2], "big"), int.from_bytes(udp[2:4], "big"))
+
+
+def _from_pcapng(data: bytes) -> list[tuple[bytes, dict[str, Any]]]:
+    """Every UDP payload of a pcapng file (module docstring)."""
+    out: list[tuple[bytes, dict[str, Any]]] = []
+    pos, order, linktypes, tsres, n = 0, "<", [], [], 0
+    while pos + 12 <= len(data):
+        if int.from_bytes(data[pos:pos + 4], "little") == _PCAPNG_SHB:
+            magic = data[pos + 8:pos + 12]
+            order = "little" if magic == b"\x4d\x3c\x2b\x1a" else "big"
+            linktypes, tsres = [], []
+        btype = int.from_bytes(data[pos:pos + 4], order)
+        total = int.from_bytes(data[pos + 4:pos + 8], order)
+        if total < 12 or total % 4 or pos + total > len(data):
+            raise DecodeError("truncated", f"pcapng block at octet {pos} is cut off")
+        body = data[pos + 8:pos + total - 4]
+        if btype == 1 and len(body) >= 8:
+            linktypes.append(int.from_bytes(body[0:2], order))
+            res = 6
+            opt = 8
+            while opt + 4 <= len(body):  # if_tsresol (option 9)
+                code = int.from_bytes(body[opt:opt + 2], order)
+                size = int.from_bytes(body[opt + 2:opt + 4], order)
+                if code == 9 and size >= 1:
+                    res = body[opt + 4] & 0x7F
+                if code == 0:
+                    break
+                opt += 4 + size + (-size % 4)
+            tsres.append(res)
+        elif btype == 6 and len(body) >= 20:
+            iface = int.from_bytes(body[0:4], order)
+            ts = (int.from_bytes(body[4:8], order) << 32) | int.from_bytes(body[8:12], order)
+            cap = int.from_bytes(body[12:16], order)
+            if iface < len(linktypes):
+                udp = _udp_payload(body[20:20 + cap], linktypes[iface])
+                if udp is not None:
+                    t = ts / 10.0 ** tsres[iface]
+                    try:
+                        frames = _unpack(udp[0])
+                    except DecodeError:  # let the frame decoder name what is wrong with it
+                        frames = [(udp[0], {"layers": ["udp"]})]
+                    for frame, meta in frames:
+                        out.append((frame, {**meta, "packet": n, "time": t,
+                                            "udp_src": udp[1], "udp_dst": udp[2]}))
+            n += 1
+        pos += total
+    return out
+
+
 def extract_frames(data: bytes) -> list[Extracted]:
     """The frames in a capture file's content, detecting its format (see module doc)."""
+    if len(data) >= 12 and int.from_bytes(data[:4], "little") == _PCAPNG_SHB:
+        found = _from_pcapng(bytes(data))
+        return [Extracted(frame, "pcapng", {**meta, "layers": ["pcapng", *meta["layers"]],
+                                            "index": i})
+                for i, (frame, meta) in enumerate(found)]
     text = _as_text(data)
     if text is None:
         found, container = _unpack(bytes(data)), None

@@ -355,15 +355,15 @@ def test_ngsim_georeference_and_frame_gap():
 
 
 def test_detect_kind_and_parse_dispatch():
-    assert datasets.KINDS == ("openacc", "ngsim", "nyc")
+    assert datasets.KINDS == ("openacc", "ngsim", "nyc", "spmd", "ode", "sumo")
     text = synthetic_openacc()
     assert datasets.detect_kind(text) == "openacc"
     assert [t.name for t in datasets.parse("openacc", text, "s")] == ["s"]
     assert datasets.detect_kind(_read(*NGSIM_FILE)) == "ngsim"
-    for other in ("", "time,x,y\n1,2,3\n", "Date,8\nfoo\n", "<fcd-export/>", "pair_id,x\n"):
+    for other in ("", "time,x,y\n1,2,3\n", "Date,8\nfoo\n", "pair_id,x\n"):
         assert datasets.detect_kind(other) is None
     with pytest.raises(ValueError, match="unknown dataset kind"):
-        datasets.parse("sumo", text, "s")
+        datasets.parse("gpx", text, "s")
 
 
 def test_detect_kind_on_real_openacc_files():

@@ -1,6 +1,7 @@
 """Dataset specs on the command line (DESIGN.md): ``PATH`` (kind detected from the content)
 or ``KIND:PATH``.  A directory means every file in it that parses.  This is the one place
-that reads dataset files; the parsers in :mod:`catc.datasets` work on text.
+that reads dataset files; the parsers in :mod:`catc.datasets` work on their text, or on
+their bytes when the file is not text (an OBU ``.bin`` log) or the kind is ``ode``.
 """
 
 from __future__ import annotations
@@ -22,6 +23,14 @@ def _split(spec: str) -> tuple[str | None, Path]:
     return None, Path(spec)
 
 
+def _read(f: Path) -> str | bytes:
+    """The file's text, or its bytes when it is not UTF-8 text."""
+    try:
+        return f.read_text()
+    except UnicodeDecodeError:
+        return f.read_bytes()
+
+
 def load(spec: str) -> list[MobilityTable]:
     """Every trip in ``spec`` (a file, a directory of files, optionally ``KIND:`` first)."""
     return [table for _, tables in load_files(spec) for table in tables]
@@ -36,12 +45,12 @@ def load_files(spec: str) -> list[tuple[Path, list[MobilityTable]]]:
     out: list[tuple[Path, list[MobilityTable]]] = []
     for f in files:
         try:
-            text = f.read_text()
-        except (OSError, UnicodeDecodeError):
+            content = f.read_bytes() if kind == "ode" else _read(f)
+        except OSError:
             if path.is_dir():
                 continue
-            raise DatasetError(f"dataset {f}: not a readable text file") from None
-        detected = detect_kind(text)
+            raise DatasetError(f"dataset {f}: not a readable file") from None
+        detected = detect_kind(content)
         if path.is_dir() and (detected is None or kind not in (None, detected)):
             continue  # READMEs, provenance notes, files of another kind
         k = kind or detected
@@ -49,7 +58,7 @@ def load_files(spec: str) -> list[tuple[Path, list[MobilityTable]]]:
             raise DatasetError(f"dataset {f}: unknown format; name it as KIND:PATH with KIND "
                                f"in {', '.join(KINDS)}")
         try:
-            out.append((f, parse(k, text, f.stem)))
+            out.append((f, parse(k, content, f.stem)))
         except ValueError as err:
             raise DatasetError(f"dataset {f}: {err}") from None
     if not any(tables for _, tables in out):

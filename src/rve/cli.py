@@ -21,7 +21,8 @@ Remote Vehicle Emulator: replays mobility logs as SAE J2735 BSM frames.
 
   run      replay a mobility log as BSM frames in real time over UDP or CAN, with
            scheduled dropouts, and record ground truth
-  encode   turn BSM records (JSON lines) into UPER MessageFrames"""
+  encode   turn BSM records (JSON lines) into UPER MessageFrames
+  scenario generate a built-in traffic scenario with Eclipse SUMO (FCD XML)"""
 
 ENCODE_HELP = f"""\
 Read one BSM record per line (JSON with the keys {", ".join(KEYS)};
@@ -61,7 +62,7 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from rve import run
+    from rve import run, scenario
 
     parser, sub = make_parser("rve", DESCRIPTION)
     r = sub.add_parser("run", help="replay a mobility log as BSMs over UDP or CAN",
@@ -78,6 +79,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--ieee1609", action="store_true",
                    help="wrap each frame in an unsecured IEEE 1609.2 envelope")
     p.set_defaults(func=_encode)
+    s = sub.add_parser("scenario", help="generate a built-in traffic scenario with SUMO",
+                       description=scenario.__doc__,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    scenario.add_arguments(s)
+    s.set_defaults(func=scenario.command)
     return dispatch(parser, argv)
 
 

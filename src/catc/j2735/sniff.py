@@ -152,7 +152,8 @@ def _from_xml(text: str) -> list[tuple[bytes, dict[str, Any]]]:
     return []
 
 
-def _as_text(data: bytes) -> str | None:
+def as_text(data: bytes) -> str | None:
+    """``data`` as UTF-8 text, or None for binary content (undecodable or control octets)."""
     try:
         text = data.decode("utf-8-sig")
     except UnicodeDecodeError:
@@ -246,7 +247,7 @@ def extract_frames(data: bytes) -> list[Extracted]:
         return [Extracted(frame, "pcapng", {**meta, "layers": ["pcapng", *meta["layers"]],
                                             "index": i})
                 for i, (frame, meta) in enumerate(found)]
-    text = _as_text(data)
+    text = as_text(data)
     if text is None:
         found, container = _unpack(bytes(data)), None
     else:

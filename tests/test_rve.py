@@ -250,3 +250,22 @@ def test_captures_decode_reads_the_rves_own_pcapng(tmp_path):
     want = sorted((f"{b.temp_id:08X}", b.msg_cnt) for b in
                   (decode_frame(unwrap(f).frame) for f in sink.frames[0] + sink.frames[1]))
     assert sorted((r["id"], r["msgCnt"]) for r in records) == want
+
+
+def test_default_scenario_and_a_synthetic_idm_host(tmp_path):
+    sink = UdpSink()
+    try:
+        default = _run("--duration", "2", "--asap", "--no-progress", "--to",
+                       f"127.0.0.1:{sink.ports[0]}", "--host-to", f"127.0.0.1:{sink.ports[1]}")
+        idm = _run("--dataset", _openacc(), "--idm-host", "SMART_TARGET", "--duration", "2",
+                   "--asap", "--no-progress", "--to", f"127.0.0.1:{sink.ports[0]}",
+                   "--host-to", f"127.0.0.1:{sink.ports[1]}", "--capture", str(tmp_path))
+    finally:
+        sink.close()
+    assert default.returncode == 0, default.stderr
+    assert json.loads(default.stdout.splitlines()[-1])["host"] == "host"
+    assert idm.returncode == 0, idm.stderr
+    summary = json.loads(idm.stdout.splitlines()[-1])
+    assert summary["host"] == "idm-host" and summary["host_frames"] == 21
+    truth = _lines(tmp_path / "rve.truth.jsonl")
+    assert any(r["vehicle"] == "idm-host" and r["host"] for r in truth)

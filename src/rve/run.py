@@ -45,11 +45,12 @@ __all__ = ["DEFAULTS", "add_arguments", "run"]
 
 #: Settings when neither a flag nor the config file gives them.
 DEFAULTS = {
-    "dataset": "scenario:highway-braking", "transport": "udp", "to": "127.0.0.1:4500",
-    "host_to": "127.0.0.1:4501", "per": 0.0, "burst": 1.0, "rate": 10.0, "latency": 0.0,
+    "dataset": "scenario:highway-braking", "transport": "udp", "to": ("127.0.0.1", 4500),
+    "host_to": ("127.0.0.1", 4501), "per": 0.0, "burst": 1.0, "rate": 10.0, "latency": 0.0,
     "jitter": 0.0, "seed": 0, "speed": 1.0, "asap": False, "capture": None,
     "duration": None, "host": None, "trip": None, "ieee1609": False, "distance": False,
     "can_interface": "virtual", "can_channel": None, "can_fd": False, "progress": True,
+    "idm_host": None,
 }
 
 
@@ -75,6 +76,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--trip", metavar="NAME", help="which trip of a multi-trip dataset "
                    "(default the first)")
     p.add_argument("--host", metavar="ID", help="host vehicle (default: the dataset's)")
+    p.add_argument("--idm-host", metavar="LEADER", help="add a synthetic host vehicle that "
+                   "follows LEADER with the IDM car-following model (catc.hostsim) and use it")
     p.add_argument("--transport", choices=("udp", "can"), help="udp (default) or can")
     p.add_argument("--to", type=_address, help="UDP HOST:PORT of the RV frames "
                    "(default 127.0.0.1:4500)")
@@ -329,6 +332,11 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         table = load_table(args.dataset, args.trip)
+        if args.idm_host:
+            from catc.hostsim import with_synthetic_host
+
+            table = with_synthetic_host(table, args.idm_host, vehicle_id="idm-host")
+            args.host = "idm-host"
         config = ChannelConfig(per=args.per / 100.0, burst=args.burst, rate_hz=args.rate,
                                latency_s=args.latency / 1000.0,
                                jitter_s=args.jitter / 1000.0, distance=bool(args.distance))

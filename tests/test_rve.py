@@ -175,6 +175,7 @@ def test_kill_9_keeps_all_but_the_last_tick(tmp_path):
 @pytest.mark.parametrize(("args", "needle"), [
     (["--dataset", "/no/such/file.csv"], "no such file"),
     (["--dataset", "scenario:nope"], "unknown scenario"),
+    (["--dataset", "gpx:/no/such.gpx"], "unknown kind 'gpx'"),
     (["--per", "150"], "percentage"),
     (["--to", "localhost"], "HOST:PORT"),
     (["--to", "no-such-host.invalid:4500"], "no-such-host.invalid"),
@@ -269,3 +270,17 @@ def test_default_scenario_and_a_synthetic_idm_host(tmp_path):
     assert summary["host"] == "idm-host" and summary["host_frames"] == 21
     truth = _lines(tmp_path / "rve.truth.jsonl")
     assert any(r["vehicle"] == "idm-host" and r["host"] for r in truth)
+
+
+def test_a_bad_dataset_row_is_named(tmp_path):
+    src = shared_path("openacc-zalazone", "short_setting_dynamic_part22.csv").read_text()
+    lines = src.splitlines()
+    lines[9], lines[10] = lines[10], lines[9]  # two rows out of order
+    bad = tmp_path / "swapped.csv"
+    bad.write_text("\n".join(lines) + "\n")
+    out = _run("--dataset", str(bad), "--asap", "--no-progress")
+    assert out.returncode == 2
+    assert out.stderr.strip().splitlines() == [
+        f"rve run: dataset {bad}: openacc: line 10: Time "
+        f"{lines[9].split(',')[0]} after {lines[8].split(',')[0]} breaks the strictly "
+        "increasing 10 Hz grid"]

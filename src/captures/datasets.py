@@ -20,6 +20,9 @@ def _split(spec: str) -> tuple[str | None, Path]:
     kind, sep, rest = spec.partition(":")
     if sep and kind in KINDS:
         return kind, Path(rest)
+    if sep and kind.isalpha() and len(kind) > 1 and not Path(spec).exists():
+        raise DatasetError(f"dataset {spec!r}: unknown kind {kind!r}; known: "
+                           f"{', '.join(KINDS)}")
     return None, Path(spec)
 
 

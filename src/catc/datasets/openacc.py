@@ -116,8 +116,11 @@ def parse(text: str, name: str) -> MobilityTable:
     columns = _vehicle_columns(header, names)
     values = _table(lines[start + 1 :], len(header))
     t = np.round(values[:, 0], 3)
-    if not np.allclose(np.diff(t), DT, atol=1e-3):
-        raise ValueError("openacc: Time is not a strictly increasing 10 Hz grid")
+    bad = np.flatnonzero(np.abs(np.diff(t) - DT) > 1e-3)
+    if len(bad):
+        row = start + 2 + int(bad[0]) + 1  # 1-based line number of the offending row
+        raise ValueError(f"openacc: line {row}: Time {t[bad[0] + 1]:g} after {t[bad[0]]:g} "
+                         "breaks the strictly increasing 10 Hz grid")
 
     vehicles = {k: values[:, [fields[f] for f in _FIELDS]] for k, fields in columns.items()}
     valid = {k: np.isfinite(data).all(axis=1) for k, data in vehicles.items()}

@@ -19,65 +19,32 @@ Also the share of ticks the RV is Ahead and Ongoing.
 from __future__ import annotations
 
 import argparse
-import itertools
 import json
 import os
 import sys
 from pathlib import Path
 
-import numpy as np
-
-from catc.cam import CamConfig, ContextAwareMap
-from catc.classify import HostPath, lateral_codes
+from catc.cam import CamConfig
 from catc.datasets import openacc
-from catc.evaluate import hindsight_offset
-from catc.replay import run_offline, temp_id
+from catc.evaluate import lane_agreement
 
 DEFAULT_DATA = Path(os.environ.get(
     "CATC_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data")
 ) / "openacc-zalazone"
-W_LANE = 3.6
 
 
 def score_file(path: Path, ph_tolerance_m: float) -> dict:
     table = openacc.parse(path.read_text(), path.stem)
-    ids = [v for v in table.tracks if "#" not in v]
-    runs = {}
-    for label, trails in (("trail+arc", True), ("arc", False)):
-        agree = n = ahead_ongoing = 0
-        straight = 0
-        for lead, host in itertools.pairwise(ids):
-            h = table.tracks[host]
-            cam = ContextAwareMap(CamConfig(predictor="ca", origin=table.origin,
-                                            trail_lanes=trails,
-                                            ph_tolerance_m=ph_tolerance_m))
-            for k, snap in enumerate(run_offline(table, cam, host_id=host)):
-                if snap.host.speed < 1.0:
-                    continue
-                try:
-                    i = snap.index(temp_id(lead))
-                except KeyError:
-                    continue
-                d = hindsight_offset(h.x[k:k + 100], h.y[k:k + 100], snap.x[i], snap.y[i])
-                if d is None:
-                    continue
-                truth = lateral_codes(np.array([d]), W_LANE)[0]
-                n += 1
-                agree += snap.zone.lateral[i] == truth
-                ahead_ongoing += bool(snap.zone.ahead[i]) and snap.zone.direction[i] == 0
-                if label == "arc":
-                    sd = HostPath(snap.host.x, snap.host.y, snap.host.heading).to_path_frame(
-                        (snap.x[i], snap.y[i]))[1]
-                    straight += lateral_codes(np.array([sd]), W_LANE)[0] == truth
-        runs[label] = (agree / n, ahead_ongoing / n, n)
-        if label == "arc":
-            runs["straight"] = (straight / n, float("nan"), n)
-    return {"file": path.stem, "ticks": runs["trail+arc"][2],
-            "agree_trail_arc": round(runs["trail+arc"][0], 3),
-            "agree_arc": round(runs["arc"][0], 3),
-            "agree_straight": round(runs["straight"][0], 3),
-            "ahead_ongoing_trail_arc": round(runs["trail+arc"][1], 4),
-            "ahead_ongoing_arc": round(runs["arc"][1], 4)}
+    runs = {label: lane_agreement(table, CamConfig(
+        predictor="ca", origin=table.origin, trail_lanes=trails,
+        ph_tolerance_m=ph_tolerance_m)) for label, trails in (("trail+arc", True), ("arc", False))}
+    t, a = runs["trail+arc"], runs["arc"]
+    return {"file": path.stem, "ticks": t.ticks,
+            "agree_trail_arc": round(t.agree / t.ticks, 3),
+            "agree_arc": round(a.agree / a.ticks, 3),
+            "agree_straight": round(a.agree_straight / a.ticks, 3),
+            "ahead_ongoing_trail_arc": round(t.ahead_ongoing / t.ticks, 4),
+            "ahead_ongoing_arc": round(a.ahead_ongoing / a.ticks, 4)}
 
 
 def main(argv: list[str] | None = None) -> int:

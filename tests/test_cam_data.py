@@ -7,17 +7,14 @@ Both replay every BSM with no loss through :meth:`catc.cam.ContextAwareMap.step`
 from __future__ import annotations
 
 import dataclasses
-import itertools
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from catc.apps import SafetyApps
 from catc.cam import CamConfig, ContextAwareMap
-from catc.classify import HostPath, lateral_codes
 from catc.datasets import nyc, openacc
-from catc.evaluate import hindsight_offset
+from catc.evaluate import lane_agreement
 from catc.mobility import MobilityTable
 from catc.replay import run_offline, temp_id
 from tests.conftest import shared_path
@@ -99,28 +96,9 @@ def test_openacc_followers_are_ahead_ongoing_and_in_the_lane_the_hv_then_drives(
     hindsight path is the ground truth of "same lane" that the data do support.
     """
     table = openacc.parse(shared_path("openacc-zalazone", name).read_text(), Path(name).stem)
-    ids = [v for v in table.tracks if "#" not in v]
-    n = agree = agree_straight = ahead_ongoing = 0
-    for lead, host in itertools.pairwise(ids):
-        h = table.tracks[host]
-        cam = ContextAwareMap(CamConfig(predictor="ca", origin=table.origin))
-        for k, snap in enumerate(run_offline(table, cam, host_id=host)):
-            if snap.host.speed < 1.0:
-                continue
-            try:
-                i = snap.index(temp_id(lead))
-            except KeyError:
-                continue
-            d = hindsight_offset(h.x[k:k + 100], h.y[k:k + 100], snap.x[i], snap.y[i])
-            if d is None:
-                continue
-            truth = lateral_codes(np.array([d]), 3.6)[0]
-            straight = HostPath(snap.host.x, snap.host.y, snap.host.heading).to_path_frame(
-                (snap.x[i], snap.y[i]))[1]
-            n += 1
-            agree += snap.zone.lateral[i] == truth
-            agree_straight += lateral_codes(np.array([straight]), 3.6)[0] == truth
-            ahead_ongoing += bool(snap.zone.ahead[i]) and snap.zone.direction[i] == 0
+    score = lane_agreement(table, CamConfig(predictor="ca", origin=table.origin))
+    n, agree, agree_straight, ahead_ongoing = (score.ticks, score.agree, score.agree_straight,
+                                               score.ahead_ongoing)
     assert n > 1000
     assert ahead_ongoing / n >= 0.995
     assert agree / n >= 0.85, (agree / n, agree_straight / n)

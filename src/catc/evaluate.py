@@ -14,6 +14,7 @@ depends only on (seed, vehicle, message index).
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
@@ -124,3 +125,48 @@ def hindsight_offset(later_x: np.ndarray, later_y: np.ndarray, px: float,
         return None
     return float(np.copysign(np.sqrt(d2[j]), ex[j] * by[j] - ey[j] * bx[j]))
 
+
+
+@dataclass(frozen=True)
+class LaneScore:
+    """Lane estimation against the hindsight truth (:func:`lane_agreement`)."""
+
+    ticks: int  # ticks scored
+    agree: int  # the CAM's lateral class = the truth's
+    agree_straight: int  # a straight-line projection's lateral class = the truth's
+    ahead_ongoing: int  # the RV classified Ahead and Ongoing
+
+
+def lane_agreement(table: MobilityTable, config, *, horizon: int = 100) -> LaneScore:
+    """Each vehicle of a platoon seen from the one behind it (no loss), through a
+    :class:`catc.cam.ContextAwareMap` with ``config``: at every tick the host moves
+    (>= 1 m/s), is the lead's lateral class the class of its offset from the host's own
+    path over the next ``horizon`` samples (:func:`hindsight_offset`)?  Vehicles split
+    into pieces (ids with ``#``) are left out."""
+    from catc.cam import ContextAwareMap
+    from catc.classify import HostPath, lateral_codes
+    from catc.replay import run_offline, temp_id
+
+    w = config.classify.w_lane
+    ids = [v for v in table.tracks if "#" not in v]
+    n = agree = straight = ahead = 0
+    for lead, host in itertools.pairwise(ids):
+        h = table.tracks[host]
+        for k, snap in enumerate(run_offline(table, ContextAwareMap(config), host_id=host)):
+            if snap.host.speed < 1.0:
+                continue
+            try:
+                i = snap.index(temp_id(lead))
+            except KeyError:
+                continue
+            d = hindsight_offset(h.x[k:k + horizon], h.y[k:k + horizon], snap.x[i], snap.y[i])
+            if d is None:
+                continue
+            truth = lateral_codes(np.array([d]), w)[0]
+            sd = HostPath(snap.host.x, snap.host.y, snap.host.heading).to_path_frame(
+                (snap.x[i], snap.y[i]))[1]
+            n += 1
+            agree += int(snap.zone.lateral[i] == truth)
+            straight += int(lateral_codes(np.array([sd]), w)[0] == truth)
+            ahead += int(bool(snap.zone.ahead[i]) and snap.zone.direction[i] == 0)
+    return LaneScore(n, agree, straight, ahead)

@@ -36,7 +36,9 @@ frames are counted in ``stats`` and dropped.
 from __future__ import annotations
 
 import abc
+import asyncio
 import importlib
+import time
 from dataclasses import dataclass
 from types import TracebackType
 from typing import Literal, Self
@@ -118,14 +120,35 @@ class Sender(abc.ABC):
 
 class Receiver(abc.ABC):
     """The OBU side of a transport.  ``stats`` counts the ``frames`` and ``bytes``
-    received per channel and the dropped frames by reason (see the backend)."""
+    received per channel and the dropped frames by reason (see the backend).
+
+    Backends call :meth:`_deliver` for every complete frame and :meth:`_end` when
+    closed; frames wait in one queue for :meth:`recv`."""
 
     stats: dict[str, int]
+    #: The backend's name, for the "closed" error.
+    kind: str = ""
 
-    @abc.abstractmethod
+    def _start_queue(self) -> None:
+        self._queue: asyncio.Queue[Received | None] = asyncio.Queue()
+
+    def _deliver(self, channel: Literal["rv", "host"], data: bytes) -> None:
+        self._queue.put_nowait(Received(channel, data, time.monotonic()))
+        count(self.stats, "frames")
+        count(self.stats, "bytes", len(data))
+        count(self.stats, channel)
+
+    def _end(self) -> None:
+        self._queue.put_nowait(None)
+
     async def recv(self) -> Received:
         """The next frame from either channel, in arrival order.  Raises
         :class:`TransportError` once the receiver is closed."""
+        got = await self._queue.get()
+        if got is None:
+            self._queue.put_nowait(None)  # every later recv() fails the same way
+            raise TransportError(f"{self.kind} receiver is closed")
+        return got
 
     @abc.abstractmethod
     async def aclose(self) -> None:

@@ -78,7 +78,7 @@ from typing import Any
 import can
 import isotp
 
-from hil.transport import Received, Receiver, Sender, TransportError, count, os_reason
+from hil.transport import Receiver, Sender, TransportError, count, os_reason
 
 __all__ = [
     "DEFAULT_CHANNELS",
@@ -349,35 +349,24 @@ class CanSender(Sender):
 class CanReceiver(Receiver):
     """The OBU side: data frames in on both addresses, Flow Control out."""
 
+    kind = "can"
+
     def __init__(self, bus: can.BusABC, rv_ids: _Ids, host_ids: _Ids,
                  params: dict[str, Any], on_frame: OnFrame | None) -> None:
         self.stats = {"frames": 0, "bytes": 0, "rv": 0, "host": 0, "can_frames": 0,
                       "errors": 0}
-        self._queue: asyncio.Queue[Received | None] = asyncio.Queue()
+        self._start_queue()
         self._port = _Port(bus, on_frame, self.stats)
         for ch, ids in (("rv", rv_ids), ("host", host_ids)):
             _Link(self._port, ch, ids[1], ids[0], params, self._deliver)
         self._port.start()
         self._closed = False
 
-    def _deliver(self, channel: str, data: bytes) -> None:
-        self._queue.put_nowait(Received(channel, data, time.monotonic()))
-        count(self.stats, "frames")
-        count(self.stats, "bytes", len(data))
-        count(self.stats, channel)
-
-    async def recv(self) -> Received:
-        got = await self._queue.get()
-        if got is None:
-            self._queue.put_nowait(None)  # every later recv() fails the same way
-            raise TransportError("can receiver is closed")
-        return got
-
     async def aclose(self) -> None:
         if not self._closed:
             self._closed = True
             self._port.close()
-            self._queue.put_nowait(None)
+            self._end()
 
 
 async def open_sender(*, interface: str, channel: str | None = None, fd: bool = False,

@@ -29,11 +29,10 @@ import contextlib
 import errno
 import logging
 import socket
-import time
 
 import asyncio_dgram
 
-from hil.transport import Received, Receiver, Sender, TransportError, count, os_reason
+from hil.transport import Receiver, Sender, TransportError, count, os_reason
 
 __all__ = ["DEFAULT_MAX_FRAME", "DEFAULT_RCVBUF", "open_receiver", "open_sender"]
 
@@ -153,6 +152,7 @@ def _bound_socket(addr: Address, rcvbuf: int) -> tuple[socket.socket, int]:
 
 
 class UdpReceiver(Receiver):
+    kind = "udp"
     """Two bound UDP sockets; a task per socket moves datagrams into one queue."""
 
     def __init__(self, streams: dict[str, asyncio_dgram.aio.DatagramServer], rcvbuf: int,
@@ -161,7 +161,7 @@ class UdpReceiver(Receiver):
         #: The bound (host, port) of each channel (useful after binding port 0).
         self.addresses = {ch: s.sockname[:2] for ch, s in streams.items()}
         self._max_frame = max_frame
-        self._queue: asyncio.Queue[Received | None] = asyncio.Queue()
+        self._start_queue()
         self._closed = False
         self.stats = {"frames": 0, "bytes": 0, "rv": 0, "host": 0, "oversized": 0,
                       "errors": 0, "rcvbuf": rcvbuf}
@@ -180,17 +180,7 @@ class UdpReceiver(Receiver):
             if len(data) > self._max_frame:
                 count(self.stats, "oversized")
                 continue
-            self._queue.put_nowait(Received(channel, data, time.monotonic()))
-            count(self.stats, "frames")
-            count(self.stats, "bytes", len(data))
-            count(self.stats, channel)
-
-    async def recv(self) -> Received:
-        got = await self._queue.get()
-        if got is None:
-            self._queue.put_nowait(None)  # every later recv() fails the same way
-            raise TransportError("udp receiver is closed")
-        return got
+            self._deliver(channel, data)
 
     async def aclose(self) -> None:
         if self._closed:
@@ -203,7 +193,7 @@ class UdpReceiver(Receiver):
                 await task
         for stream in self._streams.values():
             stream.close()
-        self._queue.put_nowait(None)
+        self._end()
 
 
 async def open_receiver(*, listen: Address, host_listen: Address, rcvbuf: int = DEFAULT_RCVBUF,

@@ -14,7 +14,7 @@ import sys
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-from captures import decode, evaluate, replay, train_bank
+from captures import decode, evaluate, replay, score, train_bank
 from catc.cliargs import dispatch, make_parser
 
 DESCRIPTION = """\
@@ -24,9 +24,10 @@ Capture-and-score post analysis for the V2X testbench.
                ODE OBU .bin logs, ODE JSON/XML records)
   evaluate     PTE95 of each predictor on real trips under seeded packet loss
   replay       run the CA-TC and the safety apps offline, print their warning events
+  score        PTE, FCW accuracy and counts of an `rve run` + `obu run` capture
   train-bank   train the HGP kernel bank on real trips (Algorithm 1)
 
-Scoring, sweeps and plots arrive with the OBU and captures issues."""
+Sweeps and plots arrive with the captures issue."""
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -34,6 +35,7 @@ def main(argv: list[str] | None = None) -> int:
     decode.register(sub)
     evaluate.register(sub)
     replay.register(sub)
+    score.register(sub)
     train_bank.register(sub)
     return dispatch(parser, argv)
 

@@ -91,6 +91,7 @@ __all__ = [
     "HostEstimate",
     "MapSnapshot",
     "RvView",
+    "SecMarkClock",
     "message_time",
 ]
 
@@ -194,6 +195,27 @@ def message_time(now: float, sec_mark: int) -> float:
     if age_ms > 30_000:
         age_ms -= 60_000
     return now - age_ms / 1000.0
+
+
+class SecMarkClock:
+    """The HV's time in seconds from its BSMs' secMarks, across minute rollovers.
+
+    The OBU knows no date: its clock is the host vehicle's (DESIGN.md).  The first secMark
+    sets the origin (``t = secMark / 1000`` there); a secMark more than 30 s below the
+    previous one starts the next minute.  The live OBU and the offline simulator both
+    take ``now`` from here, so they step the CAM at identical times; the clock differs
+    from the dataset's own time by a whole number of minutes (:attr:`minutes`).
+    """
+
+    def __init__(self) -> None:
+        self._last: int | None = None
+        self.minutes = 0
+
+    def __call__(self, sec_mark: int) -> float:
+        if self._last is not None and sec_mark < self._last - 30_000:
+            self.minutes += 1
+        self._last = sec_mark
+        return (self.minutes * 60_000 + sec_mark) / 1000.0
 
 
 def hard_braking(bsm: BSM, decel_threshold: float) -> bool:

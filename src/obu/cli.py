@@ -1,8 +1,7 @@
 """``obu``: the On-Board Unit, the device under test.
 
-The receiving daemon (``obu run``) arrives with its own issue; today the command
-offers the receive-side decoder on a single frame, for frames copied from a
-capture tool.
+``obu run`` is the receiving daemon (:mod:`obu.run`); ``obu frame`` decodes one frame as
+its receive path does, for frames copied from a capture tool.
 """
 
 from __future__ import annotations
@@ -21,6 +20,7 @@ from catc.records import bsm_to_record
 DESCRIPTION = """\
 On-Board Unit: receives BSM frames and runs the CA-TC and the safety applications.
 
+  run      receive BSM frames over UDP or CAN, run the CA-TC and the safety apps
   frame    decode one frame given in hex, as the OBU's receive path does"""
 
 FRAME_HELP = """\
@@ -51,8 +51,28 @@ def _frame(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run(args: argparse.Namespace) -> int:
+    from hil.config import ConfigError, merge
+    from obu import run
+
+    try:
+        merge(args.parser, args, "obu", run.DEFAULTS)
+    except ConfigError as err:
+        print(f"obu run: {err}", file=sys.stderr)
+        return 2
+    del args.parser
+    return run.run(args)
+
+
 def main(argv: list[str] | None = None) -> int:
+    from obu import run
+
     parser, sub = make_parser("obu", DESCRIPTION)
+    r = sub.add_parser("run", help="the OBU daemon: receive, classify, warn",
+                       description=run.__doc__,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    run.add_arguments(r)
+    r.set_defaults(func=_run, parser=r)
     p = sub.add_parser("frame", help="decode one hex frame", description=FRAME_HELP,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("hex", nargs="+", metavar="HEX")

@@ -1,0 +1,218 @@
+"""``captures score DIR``: join the RVE's ground truth with the OBU's capture and score the run.
+
+* **PTE** (DESIGN.md, "Metrics"): at every OBU tick, for every tracked RV, the 2-D distance
+  between the OBU's estimate and the RV's true position at that tick's time.  Truth
+  (``rve.truth.jsonl``) is moved into the OBU's ENU frame (its origin is in
+  ``obu.config.json``) and interpolated to the tick.  Tick times are the host's secMark
+  clock, which differs from the dataset's time by whole minutes; the offset comes from the
+  host's secMark at the first tick.  PTE95 overall and per RV.
+* **FCW accuracy**: the ground truth is the FCW output on the true states at PER 0 and
+  10 Hz: the same dataset through the offline simulator (:func:`catc.replay.simulate`,
+  every message delivered, values through UPER as on the wire).  At every tick both say
+  whether an FCW warning holds; accuracy = (TP + TN) / (TP + TN + FP + FN).
+* **Counts**: messages sent and dropped by the channel (``rve.schedule.jsonl``), received
+  and decoded by the OBU (``obu.rx.jsonl``), decode errors, and warning events by app.
+* **Latency** from the RVE's send to the OBU's decision (the end of the tick that used the
+  message), from the two processes' wall clocks on one machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections import Counter, defaultdict
+from pathlib import Path
+
+import numpy as np
+
+HELP = """\
+Score a capture directory written by `rve run --capture DIR` and `obu run --capture DIR`:
+PTE95 overall and per RV, FCW accuracy with TP/TN/FP/FN against the FCW on the true
+states, messages sent / dropped / received, decode errors, latency from send to decision,
+and the warning events.  --json prints the same as one JSON object."""
+
+
+class ScoreError(ValueError):
+    """A capture that cannot be scored; ``str()`` is one line."""
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("score", help="PTE, FCW accuracy and counts of an RVE + OBU capture",
+                       description=HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("dir", type=Path, metavar="DIR", help="the shared capture directory")
+    p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    p.set_defaults(func=run)
+
+
+def _lines(path: Path) -> list[dict]:
+    if not path.is_file():
+        raise ScoreError(f"{path}: missing (is this a capture directory of rve and obu?)")
+    out = []
+    with open(path, encoding="utf-8") as f:
+        for n, line in enumerate(f, 1):
+            try:
+                out.append(json.loads(line))
+            except json.JSONDecodeError:
+                # the last line of a killed daemon may be torn: ignore only that one
+                if f.readline():
+                    raise ScoreError(f"{path}:{n}: not a JSON line") from None
+    return out
+
+
+def _json(path: Path) -> dict:
+    if not path.is_file():
+        raise ScoreError(f"{path}: missing (is this a capture directory of rve and obu?)")
+    return json.loads(path.read_text())
+
+
+def _ground_truth_fcw(rve_cfg: dict) -> dict[float, bool]:
+    """Tick time -> FCW holds, on the true states (PER 0, 10 Hz, no latency)."""
+    from catc.apps import SafetyApps
+    from catc.cam import CamConfig, ContextAwareMap
+    from catc.channel import ChannelConfig
+    from catc.hostsim import with_synthetic_host
+    from catc.replay import plan, simulate
+    from rve.run import load_table
+
+    s = rve_cfg["settings"]
+    table = load_table(s["dataset"], s.get("trip"))
+    host = s.get("host")
+    if s.get("idm_host"):
+        table = with_synthetic_host(table, s["idm_host"], vehicle_id="idm-host")
+        host = "idm-host"
+    the_plan = plan(table, ChannelConfig(), 0, host, s.get("duration"))
+    cam = ContextAwareMap(CamConfig(predictor="ca"), SafetyApps())
+    return {round(snap.t, 3): any(w.app == "fcw" for w in snap.warnings)
+            for snap in simulate(the_plan, cam)}
+
+
+def score(directory: Path) -> dict:
+    """Every score of a capture directory (see the module docstring)."""
+    from catc.geo import EnuFrame
+
+    rve_cfg = _json(directory / "rve.config.json")
+    obu_cfg = _json(directory / "obu.config.json")
+    truth = _lines(directory / "rve.truth.jsonl")
+    schedule = _lines(directory / "rve.schedule.jsonl")
+    ticks = _lines(directory / "obu.ticks.jsonl")
+    tracks = _lines(directory / "obu.tracks.jsonl")
+    rx = _lines(directory / "obu.rx.jsonl")
+    events = _lines(directory / "obu.events.jsonl") \
+        if (directory / "obu.events.jsonl").is_file() else []
+    if not ticks:
+        raise ScoreError(f"{directory}: the OBU recorded no tick")
+    if obu_cfg.get("origin") is None:
+        raise ScoreError(f"{directory}: obu.config.json has no ENU origin")
+    frame = EnuFrame(*obu_cfg["origin"])
+    names = {tid: v for v, tid in rve_cfg["vehicles"].items()}
+
+    # time: OBU clock = dataset time + a whole number of minutes
+    host_rows = [r for r in truth if r["host"]]
+    first = ticks[0]
+    matches = [r["t"] for r in host_rows if round(r["t"] * 1000) % 60_000 == first["sec_mark"]]
+    if not matches:
+        raise ScoreError(f"{directory}: the OBU's first tick (secMark {first['sec_mark']}) "
+                         "matches no host sample of the RVE's truth")
+    offset = first["t"] - matches[0]
+
+    # truth per vehicle in the OBU's frame
+    by_vehicle: dict[str, list[dict]] = defaultdict(list)
+    for r in truth:
+        by_vehicle[r["id"]].append(r)
+    truth_xy = {}
+    for tid, rows in by_vehicle.items():
+        t = np.array([r["t"] for r in rows])
+        x, y, _ = frame.to_enu(np.array([r["lat"] for r in rows]),
+                               np.array([r["lon"] for r in rows]), 0.0)
+        truth_xy[tid] = (t, np.atleast_1d(x), np.atleast_1d(y))
+
+    per_rv: dict[str, list[float]] = defaultdict(list)
+    for row in tracks:
+        tr = truth_xy.get(row["id"])
+        if tr is None:
+            continue  # not a vehicle of this run (garbage that got a track)
+        t, x, y = tr
+        td = row["t"] - offset
+        if td < t[0] - 1e-6 or td > t[-1] + 1e-6:
+            continue
+        per_rv[row["id"]].append(float(np.hypot(row["x"] - np.interp(td, t, x),
+                                                row["y"] - np.interp(td, t, y))))
+    all_pte = np.concatenate([np.array(v) for v in per_rv.values()]) if per_rv else np.array([])
+
+    # FCW accuracy against the ground truth
+    gt = _ground_truth_fcw(rve_cfg)
+    conf = Counter()
+    for tk in ticks:
+        truth_warn = gt.get(round(tk["t"], 3))  # both on the host's secMark clock
+        if truth_warn is None:
+            continue
+        obu_warn = any(w[0] == "fcw" for w in tk["warnings"])
+        conf["tp" if obu_warn and truth_warn else "tn" if not obu_warn and not truth_warn
+             else "fp" if obu_warn else "fn"] += 1
+    total = sum(conf.values())
+
+    # counts and latency
+    rv_sched = [r for r in schedule if r["channel"] == "rv"]
+    sent = [r for r in rv_sched if not r["dropped"]]
+    ok = [r for r in rx if r.get("channel") == "rv" and r.get("status") == "ok"]
+    bad = Counter(r["status"] for r in rx if r.get("status") != "ok")
+    send_time = {(r["id"], r["seq"] % 128, round(r["t"] * 1000) % 60_000): r["sent_unix"]
+                 for r in sent}
+    lat = [r["decided_unix"] - send_time[(r["id"], r["msgCnt"], r["sec_mark"])]
+           for r in ok if (r["id"], r["msgCnt"], r["sec_mark"]) in send_time]
+    lat_ms = np.array(lat) * 1000.0
+    result = {
+        "pte95_m": round(float(np.percentile(all_pte, 95)), 4) if len(all_pte) else None,
+        "pte_mean_m": round(float(all_pte.mean()), 4) if len(all_pte) else None,
+        "pte95_per_rv": {names.get(k, k): round(float(np.percentile(v, 95)), 4)
+                         for k, v in sorted(per_rv.items())},
+        "fcw_accuracy": round((conf["tp"] + conf["tn"]) / total, 4) if total else None,
+        "fcw": {k: conf[k] for k in ("tp", "tn", "fp", "fn")},
+        "sent": len(sent), "dropped": len(rv_sched) - len(sent), "received": len(ok),
+        "decode_errors": dict(bad),
+        "latency_ms": {"p50": round(float(np.percentile(lat_ms, 50)), 3),
+                       "p99": round(float(np.percentile(lat_ms, 99)), 3),
+                       "max": round(float(lat_ms.max()), 3)} if len(lat_ms) else None,
+        "warnings": dict(Counter(f"{e['app']}" for e in events if e["kind"] == "start")),
+        "events": events,
+        "ticks": len(ticks), "predictor": obu_cfg["settings"].get("predictor"),
+        "per": rve_cfg["channel"]["per"], "rate_hz": rve_cfg["channel"]["rate_hz"],
+        "dataset": rve_cfg["dataset"]["name"],
+    }
+    return result
+
+
+def table(r: dict) -> str:
+    f = r["fcw"]
+    lines = [
+        f"run: {r['dataset']}, predictor {r['predictor']}, PER {100 * r['per']:g} %, "
+        f"{r['rate_hz']:g} Hz, {r['ticks']} OBU ticks",
+        f"messages: sent {r['sent']}, dropped by the channel {r['dropped']}, "
+        f"received {r['received']}, decode errors {sum(r['decode_errors'].values())}",
+        f"PTE95 {r['pte95_m']} m (mean {r['pte_mean_m']} m)",
+        f"FCW accuracy {r['fcw_accuracy']}  (TP {f['tp']}, TN {f['tn']}, FP {f['fp']}, "
+        f"FN {f['fn']})",
+    ]
+    if r["latency_ms"]:
+        lat = r["latency_ms"]
+        lines.append(f"latency send -> decision: p50 {lat['p50']} ms, p99 {lat['p99']} ms, "
+                     f"max {lat['max']} ms")
+    lines.append("warning events: " + (", ".join(f"{k} {v}" for k, v in
+                                                 sorted(r["warnings"].items())) or "none"))
+    lines.append("PTE95 per RV [m]: " + ", ".join(f"{k} {v}" for k, v in
+                                                   r["pte95_per_rv"].items()))
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        result = score(args.dir)
+    except (ScoreError, ValueError, KeyError) as err:
+        print(f"captures score: {err}", file=sys.stderr)
+        return 2
+    if args.json:
+        print(json.dumps(result))
+    else:
+        print(table(result))
+    return 0

@@ -1,0 +1,402 @@
+"""``obu run``: the On-Board Unit daemon, the device under test.
+
+It receives frames over UDP or CAN (``hil.transport``: the RVs' BSMs on one channel, the
+host vehicle's own state on the other), decodes J2735 with or without an IEEE 1609.2
+envelope, and at every host-vehicle frame (10 Hz) steps the CA-TC
+(:class:`catc.cam.ContextAwareMap` with the FCW, EEBL, BSW and LCW applications).  Its
+clock is the host vehicle's (:class:`catc.cam.SecMarkClock`).
+
+Tick rule: the step at host frame ``T`` takes every RV message received so far that was
+generated at or before ``T``; newer ones wait for a later tick.  Before stepping it lets
+the RV channel go quiet (up to ``--collect-ms``), so frames sent just before the host's
+are in the tick, as a radio's would be within one 100 ms slot.
+
+Outputs:
+
+* warnings: a log line on stderr per event, and one JSON object per event on stdout
+  (or ``--warnings FILE``);
+* a status line on stderr every second: frames/s, decode errors, tracked RVs, tick time
+  p99, deadline misses, warnings;
+* the capture directory (append-only, flushed at every tick): ``obu.config.json``
+  (settings, versions, ENU origin), ``obu.rx.jsonl`` (every frame with its receive time,
+  channel, octets and what became of it), ``obu.ticks.jsonl`` (one line per tick: time,
+  HV state, step time, warnings), ``obu.tracks.jsonl`` (every tracked RV at every tick:
+  estimate, source, age, zones now and predicted, lane), ``obu.events.jsonl`` (warning
+  starts and ends), ``obu.counters.json`` (rewritten every second and at the end).
+
+Robustness: a frame that does not decode (garbage, truncated, another message, absurd
+values), an oversized datagram or a broken ISO-TP transfer is counted by reason and
+dropped, with at most one log line per reason per second; a step slower than the 100 ms
+tick period is counted as a deadline miss, never skipped; SIGINT/SIGTERM flush and stop;
+``kill -9`` loses at most the last tick.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import signal
+import sys
+import time
+from collections import Counter, deque
+from importlib import metadata
+from pathlib import Path
+
+import numpy as np
+
+from catc.apps import SafetyApps
+from catc.cam import CamConfig, ContextAwareMap, MapSnapshot, SecMarkClock
+from catc.errors import DecodeError
+from catc.j2735 import decode_received
+from catc.predict import NAMES
+from catc.replay import split_due
+from hil.capture import JsonLines
+
+__all__ = ["DEFAULTS", "add_arguments", "run"]
+
+DEFAULTS = {
+    "transport": "udp", "listen": ("127.0.0.1", 4500), "host_listen": ("127.0.0.1", 4501),
+    "predictor": "hgp", "capture": None, "duration": None, "idle_exit": None,
+    "warnings": None, "collect_ms": 5.0, "can_interface": "virtual", "can_channel": None,
+    "can_fd": False, "progress": True, "max_tracks": 1000,
+}
+
+#: The host's BSM period: a step slower than this misses its deadline.
+TICK_S = 0.1
+
+
+def _address(text: str) -> tuple[str, int]:
+    host, sep, port = text.rpartition(":")
+    if not sep or not port.isdigit() or not 0 <= int(port) < 65536:
+        raise argparse.ArgumentTypeError(f"not HOST:PORT: {text!r}")
+    return host.strip("[]") or "127.0.0.1", int(port)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of ``obu run`` (DESIGN.md's contract); unset ones come from --config."""
+    p.add_argument("--config", metavar="FILE.toml", help="settings file; flags override it")
+    p.add_argument("--transport", choices=("udp", "can"), help="udp (default) or can")
+    p.add_argument("--listen", type=_address, help="UDP HOST:PORT of the RV frames "
+                   "(default 127.0.0.1:4500)")
+    p.add_argument("--host-listen", type=_address, help="UDP HOST:PORT of the host "
+                   "vehicle's frames (default 127.0.0.1:4501)")
+    p.add_argument("--predictor", choices=NAMES, help="tracking predictor (default hgp)")
+    p.add_argument("--capture", metavar="DIR", help="capture directory (see --help)")
+    p.add_argument("--duration", type=float, metavar="S", help="stop after S s (wall clock)")
+    p.add_argument("--idle-exit", type=float, metavar="S",
+                   help="stop once no frame has arrived for S s (after the first)")
+    p.add_argument("--warnings", metavar="FILE", help="warning events as JSON lines here "
+                   "instead of stdout")
+    p.add_argument("--collect-ms", type=float, help="longest wait for the RV channel to go "
+                   "quiet before a step (default 5)")
+    p.add_argument("--max-tracks", type=int, help="most RVs tracked at once (default 1000)")
+    p.add_argument("--can-interface", choices=("socketcan", "virtual", "udp_multicast"),
+                   help="python-can interface for --transport can (default virtual)")
+    p.add_argument("--can-channel", metavar="NAME", help="CAN channel, e.g. vcan0")
+    p.add_argument("--can-fd", action="store_true", default=None, help="CAN FD frames")
+    p.add_argument("--no-progress", dest="progress", action="store_false", default=None,
+                   help="no status line on stderr")
+
+
+def _version() -> str:
+    try:
+        return metadata.version("catc-hil")
+    except metadata.PackageNotFoundError:
+        return "unknown"
+
+
+class _RateLimitedLog:
+    """At most one stderr line per key per second (a flood of garbage must not flood)."""
+
+    def __init__(self) -> None:
+        self.last: dict[str, float] = {}
+        self.suppressed: Counter[str] = Counter()
+
+    def __call__(self, key: str, message: str) -> None:
+        now = time.monotonic()
+        if now - self.last.get(key, -1e9) < 1.0:
+            self.suppressed[key] += 1
+            return
+        extra = f" (+{self.suppressed.pop(key)} more)" if self.suppressed.get(key) else ""
+        self.last[key] = now
+        print(f"obu: {message}{extra}", file=sys.stderr, flush=True)
+
+
+class _Capture:
+    def __init__(self, directory: Path, args: argparse.Namespace) -> None:
+        self.dir = directory
+        directory.mkdir(parents=True, exist_ok=True)
+        self.rx = JsonLines(directory / "obu.rx.jsonl")
+        self.ticks = JsonLines(directory / "obu.ticks.jsonl")
+        self.tracks = JsonLines(directory / "obu.tracks.jsonl")
+        self.events = JsonLines(directory / "obu.events.jsonl")
+        self.settings = {k: (list(v) if isinstance(v, tuple) else v)
+                         for k, v in vars(args).items() if k not in ("func", "parser")}
+        self.write_config(None)
+
+    def write_config(self, origin) -> None:
+        config = {"settings": self.settings,
+                  "versions": {"catc-hil": _version(), "python": sys.version.split()[0]},
+                  "origin": origin, "started_unix": time.time()}
+        tmp = self.dir / "obu.config.json.tmp"
+        tmp.write_text(json.dumps(config, indent=1, default=str))
+        tmp.replace(self.dir / "obu.config.json")
+
+    def write_counters(self, counters: dict) -> None:
+        tmp = self.dir / "obu.counters.json.tmp"
+        tmp.write_text(json.dumps(counters, indent=1, sort_keys=True))
+        tmp.replace(self.dir / "obu.counters.json")
+
+    def flush(self) -> None:
+        for f in (self.rx, self.ticks, self.tracks, self.events):
+            f.flush()
+
+    def close(self) -> None:
+        for f in (self.rx, self.ticks, self.tracks, self.events):
+            f.close()
+
+
+def _track_rows(snap: MapSnapshot, sec_mark: int) -> list[dict]:
+    z, pz = snap.zone, snap.predicted_zone
+    rows = []
+    for i in range(len(snap)):
+        rows.append({
+            "t": snap.t, "sec_mark": sec_mark, "id": f"{int(snap.ids[i]):08X}",
+            "x": round(float(snap.x[i]), 7), "y": round(float(snap.y[i]), 7),
+            "speed": round(float(snap.speed[i]), 3), "heading": round(float(snap.heading[i]), 3),
+            "source": snap.source[i], "age": round(float(snap.age[i]), 3),
+            "fresh": bool(snap.fresh[i]), "lane": int(snap.lane[i]),
+            "zone": [bool(z.ahead[i]), int(z.lateral[i]), int(z.direction[i])],
+            "s": round(float(z.s[i]), 3), "d": round(float(z.d[i]), 3),
+            "predicted_zone": [bool(pz.ahead[i]), int(pz.lateral[i]), int(pz.direction[i])]})
+    return rows
+
+
+class Obu:
+    """The daemon's state: the CAM, the clock, pending messages and counters."""
+
+    def __init__(self, args: argparse.Namespace) -> None:
+        self.args = args
+        config = CamConfig(predictor=args.predictor, max_tracks=args.max_tracks)
+        self.cam = ContextAwareMap(config, SafetyApps())
+        self.clock = SecMarkClock()
+        self.pending: list = []  # decoded RV BSMs waiting for their tick
+        self.pending_rx: dict[int, float] = {}  # id(bsm) -> receive time (unix)
+        self.counters: Counter[str] = Counter()
+        self.log = _RateLimitedLog()
+        self.step_ms: deque[float] = deque(maxlen=600)
+        self.cap = _Capture(Path(args.capture), args) if args.capture else None
+        self.warn_out = (open(args.warnings, "a", encoding="utf-8")  # noqa: SIM115
+                         if args.warnings else sys.stdout)
+        self.origin_written = False
+        self.host = None  # the host frame that triggers the next tick
+        self.last_frame = time.monotonic()
+        self.last_rv_frame = 0.0
+
+    def frame(self, channel: str, data: bytes, rx_unix: float) -> None:
+        """One received frame: decode it; an HV frame also steps the CAM."""
+        self.counters["frames"] += 1
+        self.counters[f"frames_{channel}"] += 1
+        self.last_frame = time.monotonic()
+        try:
+            bsm = decode_received(data)
+        except DecodeError as err:
+            self.counters["decode_errors"] += 1
+            self.counters[f"decode_{err.reason}"] += 1
+            self.log(err.reason, f"dropped an undecodable {channel} frame ({err})")
+            if self.cap is not None:
+                self.cap.rx.write({"rx_unix": rx_unix, "channel": channel,
+                                   "octets": len(data), "status": err.reason,
+                                   "hex": data.hex()})
+            return
+        if channel == "rv":
+            self.last_rv_frame = time.monotonic()
+            self.pending.append(bsm)
+            self.pending_rx[id(bsm)] = rx_unix
+            return
+        self.host = bsm
+
+    def tick(self, host) -> MapSnapshot | None:
+        """Step the CAM at host frame ``host`` (see the module docstring)."""
+        if host.sec_mark is None or host.lat is None or host.lon is None:
+            self.counters["host_incomplete"] += 1
+            self.log("host", "a host frame without time or position: no tick")
+            return None
+        now = self.clock(host.sec_mark)
+        due, self.pending = split_due(now, self.pending)
+        t0 = time.perf_counter()
+        try:
+            snap = self.cam.step(now, host, due)
+        except ValueError as err:  # time going backwards on the host channel
+            self.counters["host_rejected"] += 1
+            self.log("host", f"host frame rejected: {err}")
+            return None
+        ms = (time.perf_counter() - t0) * 1000.0
+        self.step_ms.append(ms)
+        self.counters["ticks"] += 1
+        if ms > TICK_S * 1000.0:
+            self.counters["deadline_misses"] += 1
+        decided = time.time()
+        received = [(m, self.pending_rx.pop(id(m), None)) for m in due]
+        self._outputs(snap, host, ms, decided, received)
+        return snap
+
+    def _outputs(self, snap: MapSnapshot, host, ms: float, decided: float,
+                 received: list) -> None:
+        for e in snap.events:
+            rec = {"app": e.app, "kind": e.kind, "rv": f"{int(e.rv_id):08X}",
+                   "t": e.t_start if e.kind == "start" else e.t_end, "t_start": e.t_start}
+            self.warn_out.write(json.dumps(rec) + "\n")
+            print(f"obu: {e.app.upper()} {e.kind} RV {rec['rv']} at t={rec['t']:.1f} s",
+                  file=sys.stderr, flush=True)
+            self.counters[f"events_{e.app}"] += 1
+            if self.cap is not None:
+                self.cap.events.write(rec)
+        self.warn_out.flush()
+        self.counters["warning_ticks"] += bool(snap.warnings)
+        if self.cap is None:
+            return
+        if not self.origin_written and self.cam.frame is not None:
+            f = self.cam.frame
+            self.cap.write_config([f.lat0, f.lon0, f.h0])
+            self.origin_written = True
+        cap = self.cap
+        for m, rx_unix in received:
+            cap.rx.write({"rx_unix": rx_unix, "channel": "rv", "id": f"{m.temp_id:08X}",
+                          "msgCnt": m.msg_cnt, "sec_mark": m.sec_mark, "status": "ok",
+                          "tick": snap.t, "decided_unix": decided})
+        cap.ticks.write({
+            "t": snap.t, "sec_mark": host.sec_mark, "host": [round(snap.host.x, 4),
+                                                            round(snap.host.y, 4)],
+            "host_speed": round(snap.host.speed, 3), "tracked": len(snap),
+            "step_ms": round(ms, 3), "decided_unix": decided,
+            "warnings": [[w.app, f"{w.rv_id:08X}", round(w.range_m, 3),
+                          round(w.threshold_m, 3) if w.threshold_m == w.threshold_m
+                          else None, w.side] for w in snap.warnings]})
+        for row in _track_rows(snap, host.sec_mark):
+            cap.tracks.write(row)
+        cap.flush()
+
+    def status(self, frames_per_s: float) -> str:
+        p99 = float(np.percentile(self.step_ms, 99)) if self.step_ms else 0.0
+        c = self.counters
+        events = sum(v for k, v in c.items() if k.startswith("events_"))
+        return (f"obu: {frames_per_s:7.0f} frames/s  decode errors {c['decode_errors']}  "
+                f"tracked {len(self.cam)}  tick p99 {p99:.1f} ms  deadline misses "
+                f"{c['deadline_misses']}  warning events {events}")
+
+    def all_counters(self, transport_stats: dict) -> dict:
+        out = dict(self.counters)
+        out.update({f"cam_{k}": v for k, v in self.cam.counters.items()})
+        out.update({f"transport_{k}": v for k, v in transport_stats.items()})
+        if self.step_ms:
+            out["tick_ms_p50"] = round(float(np.percentile(self.step_ms, 50)), 3)
+            out["tick_ms_p99"] = round(float(np.percentile(self.step_ms, 99)), 3)
+        return out
+
+    def close(self) -> None:
+        if self.cap is not None:
+            self.cap.close()
+        if self.warn_out is not sys.stdout:
+            self.warn_out.close()
+
+
+async def _open_receiver(args: argparse.Namespace):
+    from hil.transport import open_receiver
+
+    if args.transport == "udp":
+        return await open_receiver("udp", listen=args.listen, host_listen=args.host_listen)
+    return await open_receiver("can", interface=args.can_interface, channel=args.can_channel,
+                               fd=bool(args.can_fd))
+
+
+async def serve(args: argparse.Namespace) -> dict:
+    """Receive and step until stopped; returns the final counters."""
+    obu = Obu(args)
+    rx = await _open_receiver(args)
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    inbox: deque[tuple[str, bytes, float]] = deque()  # frames in arrival order
+    arrived = asyncio.Event()
+
+    async def pump() -> None:
+        while True:
+            r = await rx.recv()
+            inbox.append((r.channel, r.data, time.time()))
+            arrived.set()
+
+    pumping = asyncio.create_task(pump())
+    started = time.monotonic()
+    last_status, frames_at_status = started, 0
+    collect_s = max(0.0, args.collect_ms) / 1000.0
+    try:
+        while not stop.is_set():
+            if args.duration is not None and time.monotonic() - started > args.duration:
+                break
+            if args.idle_exit is not None and obu.counters["frames"] \
+                    and time.monotonic() - obu.last_frame > args.idle_exit:
+                break
+            if not inbox:
+                arrived.clear()
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(arrived.wait(), 0.2)
+            while inbox:
+                channel, data, rx_unix = inbox.popleft()
+                obu.frame(channel, data, rx_unix)
+                if channel != "host" or obu.host is None:
+                    continue
+                host, obu.host = obu.host, None
+                # Let the RV channel go quiet, so frames sent before the host's are in
+                # this tick; stop at the next host frame.
+                deadline = time.monotonic() + collect_s
+                while time.monotonic() < deadline:
+                    await asyncio.sleep(0)
+                    while inbox and inbox[0][0] == "rv":
+                        obu.frame(*inbox.popleft())
+                    if (inbox and inbox[0][0] == "host") \
+                            or time.monotonic() - obu.last_rv_frame > 0.001:
+                        break
+                obu.tick(host)
+                break
+            now = time.monotonic()
+            if now - last_status >= 1.0:
+                fps = (obu.counters["frames"] - frames_at_status) / (now - last_status)
+                last_status, frames_at_status = now, obu.counters["frames"]
+                if args.progress:
+                    print(obu.status(fps), file=sys.stderr, flush=True)
+                if obu.cap is not None:
+                    obu.cap.write_counters(obu.all_counters(rx.stats))
+    finally:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.remove_signal_handler(sig)
+        pumping.cancel()
+        counters = obu.all_counters(rx.stats)
+        await rx.aclose()
+        if obu.cap is not None:
+            obu.cap.write_counters(counters)
+            obu.cap.flush()
+        obu.close()
+    return counters
+
+
+def run(args: argparse.Namespace) -> int:
+    """``obu run`` after flags and config are merged; the exit status."""
+    from hil.transport import TransportError
+
+    if args.max_tracks is not None and args.max_tracks < 1:
+        print("obu run: --max-tracks must be >= 1", file=sys.stderr)
+        return 2
+    try:
+        counters = asyncio.run(serve(args))
+    except TransportError as err:
+        print(f"obu run: {err}", file=sys.stderr)
+        return 2
+    except OSError as err:  # the warnings file or capture directory
+        print(f"obu run: {err}", file=sys.stderr)
+        return 2
+    print(json.dumps({"obu": counters}), file=sys.stderr)
+    return 0

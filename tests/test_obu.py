@@ -1,0 +1,227 @@
+"""The OBU daemon end to end: ``obu run`` and ``rve run`` as separate processes over UDP on
+127.0.0.1 (and over CAN: the virtual bus in one process, udp_multicast between processes
+in a namespace the test creates), ``captures score`` on their shared capture, the live run
+against the offline simulator, and garbage thrown at a running OBU."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import random
+import socket
+import subprocess
+import sys
+import threading
+import time
+import uuid
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from catc.bsm import BSM
+from catc.cam import CamConfig, ContextAwareMap
+from catc.channel import ChannelConfig
+from catc.j2735 import encode_frame
+from catc.replay import plan, simulate
+from obu import run as obu_run
+from rve import run as rve_run
+from tests.test_transport import netns  # noqa: F401  (fixture)
+
+PY = sys.executable
+
+
+def free_ports(n: int = 2) -> list[int]:
+    socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(n)]
+    for s in socks:
+        s.bind(("127.0.0.1", 0))
+    ports = [s.getsockname()[1] for s in socks]
+    for s in socks:
+        s.close()
+    return ports
+
+
+def start_obu(cap: Path, ports: list[int], *extra: str, prefix: tuple[str, ...] = ()):
+    proc = subprocess.Popen([*prefix, PY, "-m", "obu.cli", "run", "--listen",
+                             f"127.0.0.1:{ports[0]}", "--host-listen", f"127.0.0.1:{ports[1]}",
+                             "--capture", str(cap), "--idle-exit", "2", "--no-progress",
+                             *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(1.0)  # the sockets are bound well before the RVE starts sending
+    assert proc.poll() is None, proc.communicate()
+    return proc
+
+
+def rve(ports: list[int], *args: str, prefix: tuple[str, ...] = ()) -> dict:
+    out = subprocess.run([*prefix, PY, "-m", "rve.cli", "run", "--to", f"127.0.0.1:{ports[0]}",
+                          "--host-to", f"127.0.0.1:{ports[1]}", "--no-progress", *args],
+                         capture_output=True, text=True, timeout=180)
+    assert out.returncode == 0, out.stderr
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def finish(proc) -> tuple[str, str]:
+    try:
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err
+    return out, err
+
+
+def score(cap: Path) -> dict:
+    out = subprocess.run([PY, "-m", "captures.cli", "score", str(cap), "--json"],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    return json.loads(out.stdout)
+
+
+def test_udp_end_to_end_on_the_default_scenario(tmp_path):
+    ports = free_ports()
+    obu = start_obu(tmp_path, ports, "--predictor", "hgp")
+    summary = rve(ports, "--per", "50", "--seed", "2", "--speed", "8", "--capture", str(tmp_path))
+    out, _ = finish(obu)
+    events = [json.loads(line) for line in out.splitlines()]
+    fcw = [e for e in events if e["app"] == "fcw" and e["kind"] == "start"]
+    assert fcw and 19.9 <= fcw[0]["t"] <= 21.5, fcw  # the leader brakes at 20 s
+    s = score(tmp_path)
+    assert s["sent"] == summary["sent"] == s["received"]  # loopback loses nothing
+    assert s["sent"] + s["dropped"] == sum(1 for line in
+                                           (tmp_path / "rve.schedule.jsonl").open()
+                                           if '"channel":"rv"' in line)
+    assert s["decode_errors"] == {}
+    assert s["pte95_m"] < 0.5 and s["fcw_accuracy"] > 0.9
+    assert set(s) >= {"pte95_m", "fcw_accuracy", "fcw", "sent", "dropped", "received",
+                      "warnings"}
+    assert s["warnings"]["fcw"] >= 1
+    # the score table is the same numbers for people
+    table = subprocess.run([PY, "-m", "captures.cli", "score", str(tmp_path)],
+                           capture_output=True, text=True, timeout=120).stdout
+    assert f"FCW accuracy {s['fcw_accuracy']}" in table
+
+
+def test_live_equals_offline(tmp_path):
+    """Same dataset and loss schedule, zero latency: the OBU's per-tick estimates equal
+    the offline simulator's (catc driven directly) to 1e-6 m."""
+    ports = free_ports()
+    obu = start_obu(tmp_path, ports, "--predictor", "hgp")
+    rve(ports, "--per", "40", "--burst", "2", "--seed", "9", "--speed", "4",
+        "--duration", "25", "--capture", str(tmp_path))
+    finish(obu)
+    table = rve_run.load_table("scenario:highway-braking", None)
+    the_plan = plan(table, ChannelConfig(per=0.4, burst=2.0), 9, None, 25.0)
+    offline = {}
+    for snap in simulate(the_plan, ContextAwareMap(CamConfig(predictor="hgp"))):
+        for i in range(len(snap)):
+            offline[(round(snap.t, 3), f"{int(snap.ids[i]):08X}")] = (snap.x[i], snap.y[i])
+    live = {}
+    for line in (tmp_path / "obu.tracks.jsonl").open():
+        r = json.loads(line)
+        live[(round(r["t"], 3), r["id"])] = (r["x"], r["y"])
+    assert live.keys() == offline.keys()
+    err = max(float(np.hypot(live[k][0] - offline[k][0], live[k][1] - offline[k][1]))
+              for k in live)
+    assert err <= 1e-6, err
+
+
+def _garbage(rng: random.Random, host: BSM | None) -> bytes:
+    kind = rng.randrange(4)
+    if kind == 0:
+        return rng.randbytes(rng.randrange(1, 300))
+    frame = encode_frame(BSM(msg_cnt=1, temp_id=rng.getrandbits(32), sec_mark=1000,
+                             lat=46.9, lon=16.8, speed=10.0, heading=0.0))
+    if kind == 1:
+        return frame[: rng.randrange(1, len(frame))]  # truncated
+    if kind == 2:  # valid frame, absurd speed, far away
+        return encode_frame(BSM(msg_cnt=1, temp_id=rng.getrandbits(32), sec_mark=1000,
+                                lat=-45.0, lon=170.0, speed=150.0, heading=0.0))
+    return b"\x00\x14" + rng.randbytes(40)  # a MessageFrame header and noise
+
+
+def test_garbage_is_counted_and_changes_nothing(tmp_path):
+    clean, dirty = tmp_path / "clean", tmp_path / "dirty"
+    for cap, noisy in ((clean, False), (dirty, True)):
+        ports = free_ports()
+        obu = start_obu(cap, ports, "--predictor", "ca")
+        stop = threading.Event()
+
+        def spray(port=ports[0], stop=stop):
+            rng = random.Random(1)
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+                while not stop.is_set():
+                    s.sendto(_garbage(rng, None), ("127.0.0.1", port))
+                    time.sleep(0.002)
+
+        thread = threading.Thread(target=spray, daemon=True)
+        if noisy:
+            thread.start()
+        rve(ports, "--per", "30", "--seed", "4", "--speed", "4", "--duration", "25",
+            "--capture", str(cap))
+        stop.set()
+        if noisy:
+            thread.join(5)
+        finish(obu)
+    counters = json.loads((dirty / "obu.counters.json").read_text())
+    assert counters["decode_errors"] > 100
+    assert counters["cam_implausible"] > 10  # decodable frames with absurd values
+    a, b = score(clean), score(dirty)
+    for key in ("pte95_m", "fcw_accuracy", "fcw", "sent", "pte95_per_rv"):
+        assert a[key] == b[key], key
+    assert b["received"] > a["received"]  # the decodable garbage was received too
+
+
+def test_can_end_to_end_on_the_virtual_bus(tmp_path):
+    channel = f"obu-{uuid.uuid4().hex}"
+    ns = dict(obu_run.DEFAULTS, transport="can", can_interface="virtual", can_channel=channel,
+              can_fd=True, predictor="ca", capture=str(tmp_path), idle_exit=1.0,
+              progress=False)
+    obu_args = argparse.Namespace(**ns)
+    r = dict(rve_run.DEFAULTS, transport="can", can_interface="virtual", can_channel=channel,
+             can_fd=True, per=50.0, seed=3, duration=25.0, speed=8.0, capture=str(tmp_path),
+             progress=False)
+    rve_args = argparse.Namespace(**r)
+    table = rve_run.load_table(rve_args.dataset, None)
+    the_plan = plan(table, ChannelConfig(per=0.5), 3, None, 25.0)
+
+    async def main():
+        serving = asyncio.create_task(obu_run.serve(obu_args))
+        await asyncio.sleep(0.3)
+        counts = await rve_run.replay(rve_args, the_plan)
+        return counts, await asyncio.wait_for(serving, 60)
+
+    with contextlib.redirect_stdout(open(tmp_path / "warnings.jsonl", "w")):
+        counts, obu_counters = asyncio.run(main())
+    assert obu_counters["frames_rv"] == counts["sent"]
+    assert obu_counters["ticks"] == counts["host"]
+    s = score(tmp_path)
+    assert s["received"] == s["sent"] and s["warnings"].get("fcw", 0) >= 1
+
+
+def test_can_end_to_end_between_processes_over_udp_multicast(netns, tmp_path):  # noqa: F811
+    pytest.importorskip("msgpack", reason="python-can's udp_multicast needs msgpack")
+    prefix = ("ip", "netns", "exec", netns)
+    can = ("--transport", "can", "--can-interface", "udp_multicast", "--can-channel",
+           "239.74.163.2", "--can-fd")
+    obu = start_obu(tmp_path, [4500, 4501], "--predictor", "ca", *can, prefix=prefix)
+    summary = rve([4500, 4501], "--per", "50", "--seed", "6", "--speed", "8",
+                  "--duration", "25", "--capture", str(tmp_path), *can, prefix=prefix)
+    finish(obu)
+    s = score(tmp_path)
+    assert s["received"] == s["sent"] == summary["sent"]
+    assert s["warnings"].get("fcw", 0) >= 1
+
+
+@pytest.mark.parametrize(("args", "needle"), [
+    (["--listen", "nohost.invalid:4500"], "nohost.invalid"),
+    (["--predictor", "nope"], "invalid choice"),
+    (["--transport", "can", "--can-interface", "socketcan", "--can-channel", "nocan0"],
+     "nocan0"),
+])
+def test_obu_bad_input_is_one_line_and_exit_2(args, needle):
+    out = subprocess.run([PY, "-m", "obu.cli", "run", "--duration", "1", *args],
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and needle in lines[0], lines

@@ -1,17 +1,22 @@
-"""``make demo``: run what the testbench has today and say plainly what it did.
+"""``make demo``: the testbench's main job on the built-in scenario, then two real-data checks.
 
-Today that is the J2735 wire layer and the CA-TC: it decodes every real BSM in the
-shared jpo-ode vectors (deployed OBU logs, 1609.2 envelopes, ODE records), re-encodes
-them and checks the bits, sends a synthetic vehicle's BSMs through encode → 1609.2 →
-unwrap → decode and measures what the J2735 units cost in position (mm, via ENU), then
-replays the NYC CV pilot's real FCW event through the Context-Aware Target
-Classification and the FCW, as wire-decoded BSMs.  The RVE → OBU run on the built-in
-scenario replaces this when those daemons exist.
+1. The hardware-in-the-loop run: ``obu run`` and ``rve run`` as two processes over UDP on
+   loopback.  The RVE replays the built-in SUMO scenario (a platoon whose leader brakes
+   hard at 20 s) at PER 50 % and 4× speed; the OBU tracks with the HGP and runs FCW,
+   EEBL, BSW and LCW.  Then ``captures score`` on their capture: PTE, FCW accuracy against
+   the FCW on the true states, counts, latency, and the warnings raised.
+2. The NYC CV pilot's real FCW event through UPER, the CA-TC and the FCW.
+3. The J2735 wire layer: every real BSM in the jpo-ode vectors decoded and re-encoded bit
+   for bit, and what J2735 units cost in position.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import shutil
+import socket
+import subprocess
 import sys
 import time
 from collections import Counter
@@ -35,7 +40,7 @@ def _reencodes(frame: bytes, bsm: BSM) -> bool:
 
 def vectors_table(vectors: Path) -> tuple[int, int]:
     """Decode every frame in every vector file; print one row a file."""
-    print(f"1. Real BSMs from deployed OBUs ({vectors})")
+    print(f"3. Real BSMs from deployed OBUs ({vectors})")
     print(f"   {'file':<46} {'container':<10} {'frames':>6} {'BSMs':>5} {'bit-exact':>9}  "
           "rejected")
     total_bsms = total_exact = 0
@@ -68,7 +73,7 @@ def vectors_table(vectors: Path) -> tuple[int, int]:
 
 def quantization_check(n: int = 600) -> None:
     """A vehicle on a 300 m-radius curve at 25 m/s, 10 Hz, through the whole wire path."""
-    print("2. Synthetic vehicle through encode → IEEE 1609.2 → unwrap → decode (60 s, 10 Hz)")
+    print("   A synthetic vehicle through encode → IEEE 1609.2 → unwrap → decode (60 s, 10 Hz)")
     frame = EnuFrame(28.6024, -81.2001, 30.0)
     t = np.arange(n) * 0.1
     theta = 25.0 * t / 300.0
@@ -104,7 +109,7 @@ def nyc_fcw_event(path: Path) -> None:
     from catc.j2735 import decode_frame
     from catc.replay import ticks
 
-    print(f"3. A real FCW event from the NYC CV pilot ({path.name}): a deployed device")
+    print(f"2. A real FCW event from the NYC CV pilot ({path.name}): a deployed device")
     print("   warned at T = 0 s.  Its host and target BSMs, through UPER and our CA-TC + FCW:")
     table = nyc.parse(path.read_text(), path.stem)
     cam = ContextAwareMap(CamConfig(predictor="hgp", origin=table.origin), SafetyApps())
@@ -128,30 +133,90 @@ def nyc_fcw_event(path: Path) -> None:
     print("   a stuck speed field; with its real speed no FCW fires (docs/catc.md).")
 
 
+def _free_ports() -> list[int]:
+    socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(2)]
+    for s in socks:
+        s.bind(("127.0.0.1", 0))
+    ports = [s.getsockname()[1] for s in socks]
+    for s in socks:
+        s.close()
+    return ports
+
+
+def hil_run(out: Path, per: float, speed: float, predictor: str) -> int:
+    """The RVE -> OBU run over UDP on loopback, then the score (module docstring, 1)."""
+    from captures.score import score, table
+
+    print(f"1. RVE -> OBU over UDP on 127.0.0.1: built-in scenario highway-braking, PER "
+          f"{per:g} %, {predictor}, {speed:g}x speed (capture in {out})")
+    if out.exists():
+        shutil.rmtree(out)
+    ports = _free_ports()
+    py = sys.executable
+    obu = subprocess.Popen(
+        [py, "-m", "obu.cli", "run", "--listen", f"127.0.0.1:{ports[0]}", "--host-listen",
+         f"127.0.0.1:{ports[1]}", "--predictor", predictor, "--capture", str(out),
+         "--idle-exit", "2", "--no-progress"], stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True)
+    try:
+        time.sleep(1.0)
+        if obu.poll() is not None:
+            print("   the OBU did not start: " + obu.communicate()[1].strip())
+            return 1
+        rve = subprocess.run(
+            [py, "-m", "rve.cli", "run", "--per", str(per), "--speed", str(speed), "--seed",
+             "1", "--to", f"127.0.0.1:{ports[0]}", "--host-to", f"127.0.0.1:{ports[1]}",
+             "--capture", str(out)], stdout=subprocess.PIPE, text=True, timeout=600)
+        warnings, err = obu.communicate(timeout=120)
+    finally:
+        if obu.poll() is None:
+            obu.kill()
+    if rve.returncode or obu.returncode:
+        print(f"   failed: rve exit {rve.returncode}, obu exit {obu.returncode}: {err.strip()}")
+        return 1
+    result = score(out)
+    print("   " + table(result).replace("\n", "\n   "))
+    print("   warning events (t = dataset s):")
+    names = json.loads((out / "rve.config.json").read_text())["vehicles"]
+    by_id = {v: k for k, v in names.items()}
+    for line in warnings.splitlines():
+        e = json.loads(line)
+        if e["app"] in ("fcw", "eebl"):
+            print(f"     t = {e['t']:5.1f} s  {e['app'].upper():4} {e['kind']:<5} on "
+                  f"{by_id.get(e['rv'], e['rv'])}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="captures.demo", description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=Path("../shared/data"),
                     help="the shared data folder (default ../shared/data)")
+    ap.add_argument("--out", type=Path, default=Path("out/demo"),
+                    help="capture directory of the RVE -> OBU run (default out/demo)")
+    ap.add_argument("--per", type=float, default=50.0, help="packet error rate, %% (50)")
+    ap.add_argument("--speed", type=float, default=4.0, help="replay speed factor (4)")
+    ap.add_argument("--predictor", default="hgp", help="the OBU's predictor (hgp)")
     args = ap.parse_args(argv)
-    print("catc-hil demo: the J2735 wire layer and the CA-TC (the RVE/OBU run replaces this")
-    print("demo when the daemons exist).\n")
-    vectors = args.data / "jpo-ode-bsm-vectors"
-    if vectors.is_dir():
-        vectors_table(vectors)
-    else:
-        print(f"1. skipped: no real vectors at {vectors} (pass --data DIR)")
-    print()
-    quantization_check()
+    print("catc-hil demo: the V2X hardware-in-the-loop testbench on its built-in scenario\n")
+    status = hil_run(args.out, args.per, args.speed, args.predictor)
     print()
     event = args.data / "cv-pilot-samples" / "nycdot-fcw-event.json"
     if event.is_file():
         nyc_fcw_event(event)
     else:
-        print(f"3. skipped: no NYC event at {event} (pass --data DIR)")
-    print("\nTry: .venv/bin/captures decode ../shared/data/jpo-ode-bsm-vectors/rxMsg_BSM.bin")
+        print(f"2. skipped: no NYC event at {event} (pass --data DIR)")
+    print()
+    vectors = args.data / "jpo-ode-bsm-vectors"
+    if vectors.is_dir():
+        vectors_table(vectors)
+    else:
+        print(f"3. skipped: no real vectors at {vectors} (pass --data DIR)")
+    quantization_check()
+    print(f"\nTry: .venv/bin/captures score {args.out}")
+    print("     .venv/bin/captures decode ../shared/data/jpo-ode-bsm-vectors/rxMsg_BSM.bin")
     print("     .venv/bin/captures replay --dataset nyc:" + str(event))
     print("     .venv/bin/python bench/codec.py; .venv/bin/python bench/step.py")
-    return 0
+    return status
 
 
 if __name__ == "__main__":

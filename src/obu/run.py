@@ -186,7 +186,7 @@ class Obu:
         self.pending_rx: dict[int, float] = {}  # id(bsm) -> receive time (unix)
         self.counters: Counter[str] = Counter()
         self.log = _RateLimitedLog()
-        self.step_ms: deque[float] = deque(maxlen=600)
+        self.step_ms: deque[float] = deque(maxlen=6000)  # the last 10 min of ticks
         self.cap = _Capture(Path(args.capture), args) if args.capture else None
         self.warn_out = (open(args.warnings, "a", encoding="utf-8")  # noqa: SIM115
                          if args.warnings else sys.stdout)
@@ -294,6 +294,7 @@ class Obu:
         if self.step_ms:
             out["tick_ms_p50"] = round(float(np.percentile(self.step_ms, 50)), 3)
             out["tick_ms_p99"] = round(float(np.percentile(self.step_ms, 99)), 3)
+            out["tick_ms_max"] = round(float(max(self.step_ms)), 3)
         return out
 
     def close(self) -> None:

@@ -225,3 +225,34 @@ def test_obu_bad_input_is_one_line_and_exit_2(args, needle):
     assert out.returncode == 2
     lines = out.stderr.strip().splitlines()
     assert len(lines) == 1 and needle in lines[0], lines
+
+
+def test_obu_sigterm_flushes_and_kill_9_keeps_all_but_the_last_tick(tmp_path):
+    import os
+    import signal
+
+    for sig, cap in ((signal.SIGTERM, tmp_path / "term"), (signal.SIGKILL, tmp_path / "kill")):
+        ports = free_ports()
+        obu = start_obu(cap, ports, "--predictor", "ca")
+        sender = subprocess.Popen([PY, "-m", "rve.cli", "run", "--to", f"127.0.0.1:{ports[0]}",
+                                   "--host-to", f"127.0.0.1:{ports[1]}", "--no-progress"],
+                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        try:
+            time.sleep(3.0)
+            os.kill(obu.pid, sig)
+            obu.wait(20)
+        finally:
+            sender.kill()
+            sender.wait(10)
+            if obu.poll() is None:
+                obu.kill()
+        ticks = [json.loads(line) for line in (cap / "obu.ticks.jsonl").open()]
+        tracks = [json.loads(line) for line in (cap / "obu.tracks.jsonl").open()]
+        assert len(ticks) > 10
+        # every tick but possibly the last has all its track rows
+        per_tick = {t["t"]: t["tracked"] for t in ticks[:-1]}
+        for t, n in per_tick.items():
+            assert sum(1 for r in tracks if r["t"] == t) == n
+        if sig == signal.SIGTERM:
+            assert obu.returncode == 0
+            assert json.loads((cap / "obu.counters.json").read_text())["ticks"] == len(ticks)

@@ -183,7 +183,7 @@ class Obu:
         self.cam = ContextAwareMap(config, SafetyApps())
         self.clock = SecMarkClock()
         self.pending: list = []  # decoded RV BSMs waiting for their tick
-        self.pending_rx: dict[int, float] = {}  # id(bsm) -> receive time (unix)
+        self.pending_rx: dict[int, tuple[float, bytes]] = {}  # id(bsm) -> (rx unix, octets)
         self.counters: Counter[str] = Counter()
         self.log = _RateLimitedLog()
         self.step_ms: deque[float] = deque(maxlen=6000)  # the last 10 min of ticks
@@ -214,7 +214,7 @@ class Obu:
         if channel == "rv":
             self.last_rv_frame = time.monotonic()
             self.pending.append(bsm)
-            self.pending_rx[id(bsm)] = rx_unix
+            self.pending_rx[id(bsm)] = (rx_unix, data)
             return
         self.host = bsm
 
@@ -239,7 +239,7 @@ class Obu:
         if ms > TICK_S * 1000.0:
             self.counters["deadline_misses"] += 1
         decided = time.time()
-        received = [(m, self.pending_rx.pop(id(m), None)) for m in due]
+        received = [(m, *self.pending_rx.pop(id(m), (None, b""))) for m in due]
         self._outputs(snap, host, ms, decided, received)
         return snap
 
@@ -263,10 +263,11 @@ class Obu:
             self.cap.write_config([f.lat0, f.lon0, f.h0])
             self.origin_written = True
         cap = self.cap
-        for m, rx_unix in received:
+        for m, rx_unix, data in received:
             cap.rx.write({"rx_unix": rx_unix, "channel": "rv", "id": f"{m.temp_id:08X}",
                           "msgCnt": m.msg_cnt, "sec_mark": m.sec_mark, "status": "ok",
-                          "tick": snap.t, "decided_unix": decided})
+                          "tick": snap.t, "decided_unix": decided, "octets": len(data),
+                          "hex": data.hex()})
         cap.ticks.write({
             "t": snap.t, "sec_mark": host.sec_mark, "host": [round(snap.host.x, 4),
                                                             round(snap.host.y, 4)],

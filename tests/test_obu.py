@@ -256,3 +256,17 @@ def test_obu_sigterm_flushes_and_kill_9_keeps_all_but_the_last_tick(tmp_path):
         if sig == signal.SIGTERM:
             assert obu.returncode == 0
             assert json.loads((cap / "obu.counters.json").read_text())["ticks"] == len(ticks)
+
+
+def test_captures_decode_reads_the_obus_rx_capture(tmp_path):
+    ports = free_ports()
+    obu = start_obu(tmp_path, ports, "--predictor", "ca")
+    rve(ports, "--asap", "--duration", "2", "--ieee1609", "--capture", str(tmp_path))
+    finish(obu)
+    rx = [json.loads(line) for line in (tmp_path / "obu.rx.jsonl").open()]
+    out = subprocess.run([PY, "-m", "captures.cli", "decode", str(tmp_path / "obu.rx.jsonl")],
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    decoded = [json.loads(line) for line in out.stdout.splitlines()]
+    assert len(decoded) == len(rx) > 0
+    assert [(d["id"], d["msgCnt"]) for d in decoded] == [(r["id"], r["msgCnt"]) for r in rx]

@@ -17,7 +17,8 @@ Text input is one of:
   works too (the ODE's ``BsmReceiverTest_ValidBSM.txt`` is a whole bsmTx log record:
   26-octet header, then 1609.2, then the frame);
 - ODE JSON (one object, an array, or JSON lines): the hex in ``payload.data.bytes``,
-  else in ``metadata.asn1``.  Records with decoded values only give no frames;
+  else in ``metadata.asn1``.  Records with decoded values only give no frames.  The
+  OBU's own ``obu.rx.jsonl`` (records with ``rx_unix``) gives the frame in ``hex``;
 - ODE XML (``OdeAsn1Data``): the hex in ``<bytes>`` elements, else in ``<asn1>``.
 
 Each frame comes back as an :class:`Extracted` whose ``container`` names the file's
@@ -126,6 +127,13 @@ def _get(obj: Any, *keys: str) -> Any:
 def _from_json(text: str) -> list[tuple[bytes, dict[str, Any]]]:
     frames = []
     for n, rec in enumerate(_json_records(text)):
+        if isinstance(rec, dict) and "rx_unix" in rec:  # the OBU's own obu.rx.jsonl
+            if isinstance(rec.get("hex"), str) and rec["hex"]:
+                for f, m in _unpack(_hex(rec["hex"], f"JSON record {n} hex")):
+                    frames.append((f, {**m, "line": n, "field": "hex",
+                                       "rx_unix": rec["rx_unix"],
+                                       "channel": rec.get("channel")}))
+            continue
         if not isinstance(rec, dict) or not _ODE_JSON_KEYS & rec.keys():
             raise DecodeError("garbage", f"JSON record {n} is not an ODE record; {ACCEPTED}")
         for path in (("payload", "data", "bytes"), ("metadata", "asn1")):

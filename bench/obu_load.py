@@ -20,7 +20,6 @@ import argparse
 import asyncio
 import json
 import os
-import socket
 import subprocess
 import sys
 import tempfile
@@ -31,18 +30,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from catc.channel import ChannelConfig
 from catc.replay import plan
+from hil.transport.udp import free_ports
 from rve.run import DEFAULTS, replay
 from rve_pacing import ring_table
-
-
-def free_ports() -> list[int]:
-    socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(2)]
-    for s in socks:
-        s.bind(("127.0.0.1", 0))
-    ports = [s.getsockname()[1] for s in socks]
-    for s in socks:
-        s.close()
-    return ports
 
 
 def cpu_seconds(pid: int) -> float:

@@ -26,21 +26,12 @@ from catc.cam import CamConfig, ContextAwareMap
 from catc.channel import ChannelConfig
 from catc.j2735 import encode_frame
 from catc.replay import plan, simulate
+from hil.transport.udp import free_ports
 from obu import run as obu_run
 from rve import run as rve_run
 from tests.test_transport import netns  # noqa: F401  (fixture)
 
 PY = sys.executable
-
-
-def free_ports(n: int = 2) -> list[int]:
-    socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(n)]
-    for s in socks:
-        s.bind(("127.0.0.1", 0))
-    ports = [s.getsockname()[1] for s in socks]
-    for s in socks:
-        s.close()
-    return ports
 
 
 def start_obu(cap: Path, ports: list[int], *extra: str, prefix: tuple[str, ...] = ()):

@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
-import socket
 import subprocess
 import sys
 import time
@@ -31,6 +30,7 @@ from catc.geo import EnuFrame
 from catc.j2735 import encode_bsm, encode_frame
 from catc.j2735.ieee1609 import unwrap, wrap_unsecured
 from catc.j2735.sniff import extract_frames
+from hil.transport.udp import free_ports
 
 
 def _reencodes(frame: bytes, bsm: BSM) -> bool:
@@ -133,16 +133,6 @@ def nyc_fcw_event(path: Path) -> None:
     print("   a stuck speed field; with its real speed no FCW fires (docs/catc.md).")
 
 
-def _free_ports() -> list[int]:
-    socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(2)]
-    for s in socks:
-        s.bind(("127.0.0.1", 0))
-    ports = [s.getsockname()[1] for s in socks]
-    for s in socks:
-        s.close()
-    return ports
-
-
 def hil_run(out: Path, per: float, speed: float, predictor: str) -> int:
     """The RVE -> OBU run over UDP on loopback, then the score (module docstring, 1)."""
     from captures.score import score, table
@@ -151,7 +141,7 @@ def hil_run(out: Path, per: float, speed: float, predictor: str) -> int:
           f"{per:g} %, {predictor}, {speed:g}x speed (capture in {out})")
     if out.exists():
         shutil.rmtree(out)
-    ports = _free_ports()
+    ports = free_ports()
     py = sys.executable
     obu = subprocess.Popen(
         [py, "-m", "obu.cli", "run", "--listen", f"127.0.0.1:{ports[0]}", "--host-listen",

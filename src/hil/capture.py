@@ -23,7 +23,19 @@ import struct
 from pathlib import Path
 from typing import Any, BinaryIO, TextIO
 
-__all__ = ["JsonLines", "PcapngWriter", "can_log", "udp_packet"]
+__all__ = ["JsonLines", "PcapngWriter", "can_log", "udp_packet", "versions"]
+
+
+def versions() -> dict[str, str]:
+    """What a capture's config records about the software that wrote it."""
+    import sys
+    from importlib import metadata
+
+    try:
+        own = metadata.version("catc-hil")
+    except metadata.PackageNotFoundError:
+        own = "unknown"
+    return {"catc-hil": own, "python": sys.version.split()[0]}
 
 
 class JsonLines:

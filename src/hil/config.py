@@ -13,7 +13,7 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
-__all__ = ["ConfigError", "merge"]
+__all__ = ["ConfigError", "merge", "run_daemon"]
 
 
 class ConfigError(ValueError):
@@ -65,3 +65,18 @@ def merge(parser: argparse.ArgumentParser, args: argparse.Namespace, section: st
         elif dest in defaults:
             setattr(args, dest, defaults[dest])
     return args
+
+
+def run_daemon(args: argparse.Namespace, section: str, module) -> int:
+    """Merge ``--config`` and the defaults of ``module`` (``DEFAULTS``) into the parsed
+    flags (``args.parser`` is the subcommand's parser), then ``module.run(args)``; a bad
+    config file is one line and exit status 2."""
+    import sys
+
+    try:
+        merge(args.parser, args, section, module.DEFAULTS)
+    except ConfigError as err:
+        print(f"{section} run: {err}", file=sys.stderr)
+        return 2
+    del args.parser
+    return module.run(args)

@@ -59,16 +59,10 @@ def _frame(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from hil.config import ConfigError, merge
+    from hil.config import run_daemon
     from obu import run
 
-    try:
-        merge(args.parser, args, "obu", run.DEFAULTS)
-    except ConfigError as err:
-        print(f"obu run: {err}", file=sys.stderr)
-        return 2
-    del args.parser
-    return run.run(args)
+    return run_daemon(args, "obu", run)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -41,7 +41,6 @@ import signal
 import sys
 import time
 from collections import Counter, deque
-from importlib import metadata
 from pathlib import Path
 
 import numpy as np
@@ -52,7 +51,7 @@ from catc.errors import DecodeError
 from catc.j2735 import decode_received
 from catc.predict import NAMES
 from catc.replay import split_due
-from hil.capture import JsonLines
+from hil.capture import JsonLines, versions
 
 __all__ = ["DEFAULTS", "add_arguments", "run"]
 
@@ -100,13 +99,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="no status line on stderr")
 
 
-def _version() -> str:
-    try:
-        return metadata.version("catc-hil")
-    except metadata.PackageNotFoundError:
-        return "unknown"
-
-
 class _RateLimitedLog:
     """At most one stderr line per key per second (a flood of garbage must not flood)."""
 
@@ -138,7 +130,7 @@ class _Capture:
 
     def write_config(self, origin) -> None:
         config = {"settings": self.settings,
-                  "versions": {"catc-hil": _version(), "python": sys.version.split()[0]},
+                  "versions": versions(),
                   "origin": origin, "started_unix": time.time()}
         tmp = self.dir / "obu.config.json.tmp"
         tmp.write_text(json.dumps(config, indent=1, default=str))

@@ -56,16 +56,10 @@ def _encode(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from hil.config import ConfigError, merge
+    from hil.config import run_daemon
     from rve import run
 
-    try:
-        merge(args.parser, args, "rve", run.DEFAULTS)
-    except ConfigError as err:
-        print(f"rve run: {err}", file=sys.stderr)
-        return 2
-    del args.parser
-    return run.run(args)
+    return run_daemon(args, "rve", run)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -29,7 +29,7 @@ import socket
 import sys
 import time
 from collections import deque
-from importlib import metadata, resources
+from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -38,7 +38,7 @@ from catc.channel import CAUSES, ChannelConfig
 from catc.j2735 import encode_frame
 from catc.j2735.ieee1609 import wrap_unsecured
 from catc.replay import Plan, plan, temp_id
-from hil.capture import JsonLines, PcapngWriter, can_log, udp_packet
+from hil.capture import JsonLines, PcapngWriter, can_log, udp_packet, versions
 from hil.pacing import Pacer
 
 __all__ = ["DEFAULTS", "add_arguments", "run"]
@@ -146,7 +146,7 @@ class _Capture:
         config = {
             "settings": {k: (list(v) if isinstance(v, tuple) else v)
                          for k, v in vars(args).items() if k not in ("func",)},
-            "versions": {"catc-hil": _version(), "python": sys.version.split()[0]},
+            "versions": versions(),
             "dataset": {"name": table.name, "kind": table.kind, "origin": table.origin},
             "host": the_plan.host_id,
             "vehicles": {v: f"{temp_id(v):08X}" for v in the_plan.vehicles},
@@ -188,13 +188,6 @@ class _Capture:
             self.pcap.close()
         if self.canlog is not None:
             self.canlog.stop()
-
-
-def _version() -> str:
-    try:
-        return metadata.version("catc-hil")
-    except metadata.PackageNotFoundError:
-        return "unknown"
 
 
 class _Progress:

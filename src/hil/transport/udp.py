@@ -211,3 +211,16 @@ async def open_receiver(*, listen: Address, host_listen: Address, rcvbuf: int = 
         raise
     streams = {ch: await asyncio_dgram.from_socket(sock) for ch, sock in socks.items()}
     return UdpReceiver(streams, min(granted), max_frame)
+
+
+def free_ports(n: int = 2, host: str = "127.0.0.1") -> list[int]:
+    """``n`` UDP ports on ``host`` that were free a moment ago (for tests, benches, demo)."""
+    socks = [socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET,
+                           socket.SOCK_DGRAM) for _ in range(n)]
+    try:
+        for s in socks:
+            s.bind((host, 0))
+        return [s.getsockname()[1] for s in socks]
+    finally:
+        for s in socks:
+            s.close()

@@ -261,3 +261,14 @@ def test_captures_decode_reads_the_obus_rx_capture(tmp_path):
     decoded = [json.loads(line) for line in out.stdout.splitlines()]
     assert len(decoded) == len(rx) > 0
     assert [(d["id"], d["msgCnt"]) for d in decoded] == [(r["id"], r["msgCnt"]) for r in rx]
+
+
+def test_score_reads_a_torn_last_line_but_not_a_torn_middle(tmp_path):
+    from captures.score import ScoreError, _lines
+
+    path = tmp_path / "x.jsonl"
+    path.write_text('{"a":1}\n{"b":2}\n{"c":')  # killed mid-line
+    assert _lines(path) == [{"a": 1}, {"b": 2}]
+    path.write_text('{"a":1}\n{"b":\n{"c":3}\n')
+    with pytest.raises(ScoreError, match=":2: not a JSON line"):
+        _lines(path)

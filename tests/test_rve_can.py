@@ -86,7 +86,7 @@ def test_rve_process_over_udp_multicast_in_a_namespace(netns, tmp_path):  # noqa
     _the_plan, want_rv, want_host = _expected()
     count = len(want_rv) + want_host
     receiver = subprocess.Popen(
-        [*_peer(netns, "recv", count, True)[:-1], "--fd"], stdout=subprocess.PIPE,
+        _peer(netns, "recv", count, True), stdout=subprocess.PIPE,
         stderr=subprocess.PIPE, text=True)
     try:
         _ready, _, _ = select.select([receiver.stdout], [], [], 15)

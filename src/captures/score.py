@@ -48,15 +48,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _lines(path: Path) -> list[dict]:
     if not path.is_file():
         raise ScoreError(f"{path}: missing (is this a capture directory of rve and obu?)")
+    lines = path.read_text(encoding="utf-8").splitlines()
     out = []
-    with open(path, encoding="utf-8") as f:
-        for n, line in enumerate(f, 1):
-            try:
-                out.append(json.loads(line))
-            except json.JSONDecodeError:
-                # the last line of a killed daemon may be torn: ignore only that one
-                if f.readline():
-                    raise ScoreError(f"{path}:{n}: not a JSON line") from None
+    for n, line in enumerate(lines, 1):
+        try:
+            out.append(json.loads(line))
+        except json.JSONDecodeError:
+            if n < len(lines):  # only the last line of a killed daemon may be torn
+                raise ScoreError(f"{path}:{n}: not a JSON line") from None
     return out
 
 

@@ -13,7 +13,16 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
-__all__ = ["ConfigError", "merge", "run_daemon"]
+__all__ = ["ConfigError", "address", "merge", "run_daemon"]
+
+
+def address(text: str) -> tuple[str, int]:
+    """``HOST:PORT`` (``[::1]:4500`` for IPv6; an empty host is 127.0.0.1) as a pair; the
+    argparse ``type`` of the daemons' address flags."""
+    host, sep, port = text.rpartition(":")
+    if not sep or not port.isdigit() or not 0 <= int(port) < 65536:
+        raise argparse.ArgumentTypeError(f"not HOST:PORT: {text!r}")
+    return host.strip("[]") or "127.0.0.1", int(port)
 
 
 class ConfigError(ValueError):

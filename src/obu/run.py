@@ -52,6 +52,7 @@ from catc.j2735 import decode_received
 from catc.predict import NAMES
 from catc.replay import split_due
 from hil.capture import JsonLines, versions
+from hil.config import address
 
 __all__ = ["DEFAULTS", "add_arguments", "run"]
 
@@ -66,20 +67,13 @@ DEFAULTS = {
 TICK_S = 0.1
 
 
-def _address(text: str) -> tuple[str, int]:
-    host, sep, port = text.rpartition(":")
-    if not sep or not port.isdigit() or not 0 <= int(port) < 65536:
-        raise argparse.ArgumentTypeError(f"not HOST:PORT: {text!r}")
-    return host.strip("[]") or "127.0.0.1", int(port)
-
-
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The flags of ``obu run`` (DESIGN.md's contract); unset ones come from --config."""
     p.add_argument("--config", metavar="FILE.toml", help="settings file; flags override it")
     p.add_argument("--transport", choices=("udp", "can"), help="udp (default) or can")
-    p.add_argument("--listen", type=_address, help="UDP HOST:PORT of the RV frames "
+    p.add_argument("--listen", type=address, help="UDP HOST:PORT of the RV frames "
                    "(default 127.0.0.1:4500)")
-    p.add_argument("--host-listen", type=_address, help="UDP HOST:PORT of the host "
+    p.add_argument("--host-listen", type=address, help="UDP HOST:PORT of the host "
                    "vehicle's frames (default 127.0.0.1:4501)")
     p.add_argument("--predictor", choices=NAMES, help="tracking predictor (default hgp)")
     p.add_argument("--capture", metavar="DIR", help="capture directory (see --help)")

@@ -39,6 +39,7 @@ from catc.j2735 import encode_frame
 from catc.j2735.ieee1609 import wrap_unsecured
 from catc.replay import Plan, plan, temp_id
 from hil.capture import JsonLines, PcapngWriter, can_log, udp_packet, versions
+from hil.config import address
 from hil.pacing import Pacer
 
 __all__ = ["DEFAULTS", "add_arguments", "run"]
@@ -79,9 +80,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--idm-host", metavar="LEADER", help="add a synthetic host vehicle that "
                    "follows LEADER with the IDM car-following model (catc.hostsim) and use it")
     p.add_argument("--transport", choices=("udp", "can"), help="udp (default) or can")
-    p.add_argument("--to", type=_address, help="UDP HOST:PORT of the RV frames "
+    p.add_argument("--to", type=address, help="UDP HOST:PORT of the RV frames "
                    "(default 127.0.0.1:4500)")
-    p.add_argument("--host-to", type=_address, help="UDP HOST:PORT of the host "
+    p.add_argument("--host-to", type=address, help="UDP HOST:PORT of the host "
                    "vehicle's frames (default 127.0.0.1:4501)")
     p.add_argument("--per", type=_percent, help="packet error rate, %% (default 0)")
     p.add_argument("--burst", type=float, help="mean burst length in messages; 1 = "
@@ -266,9 +267,8 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
                                 else max(0.0, pacer.clock() - deadline)))
             for ev, frame, when in zip(batch, frames, sent_at, strict=True):
                 _account(ev, frame, when, the_plan, args, cap, counts, tids, src, lateness)
-            if when is not None:
-                progress.update(float(ev["time"]), t0, counts["sent"], counts["dropped"],
-                                when[1])
+            progress.update(due, t0, counts["sent"], counts["dropped"],
+                            max((w[1] for w in sent_at if w is not None), default=0.0))
             if cap is not None and bool(events["host"][j - 1]):
                 cap.write_truth(the_plan, due)
                 cap.flush()

@@ -37,8 +37,8 @@ What one step does, in order:
    the HV is evicted if the newcomer is nearer (``displaced``), else the newcomer is
    dropped (``table_full``): nearby vehicles are the ones the safety applications need.
    RVs silent for more than ``stale_after_s`` are evicted (``evicted_stale``).
-4. **HV**: its own predictor and path history are updated with ``host`` (no loss on the
-   HV channel).  The HV path ahead is the arc of radius ``R = v / yaw rate``
+4. **HV**: its own predictor (``host_predictor``, CTRV as in SAE J2945/1) and path
+   history are updated with ``host`` (no loss on the HV channel).  The HV path ahead is the arc of radius ``R = v / yaw rate``
    (:func:`catc.classify.hv_radius_m`), behind it the concise path history.
 5. **Tracking**: every RV is estimated at ``now`` with its predictor (an RV with a fresh
    BSM gets that BSM's state, moved forward by any latency) and at ``now + horizon_s``
@@ -117,8 +117,13 @@ _PH_GAP_S = 0.15
 class CamConfig:
     """Every parameter of the CAM; each default says where it comes from."""
 
-    #: The tracking predictor (:func:`catc.predict.make_predictor`), also the HV's.
+    #: The tracking predictor of the RVs (:func:`catc.predict.make_predictor`).
     predictor: str = "hgp"
+    #: The HV's own predictor, for its predicted pose at ``horizon_s``.  The HV knows its
+    #: state at every tick (no loss), and SAE J2945/1 predicts the HV's path as a constant
+    #: radius from its own speed and yaw rate: CTRV.  Kept apart from ``predictor`` so that
+    #: comparing RV predictors (``captures sweep``) does not change the HV's path.
+    host_predictor: str = "ctrv"
     #: How far ahead (s) the predicted position is classified.  The paper's example
     #: (an RV now Behind, predicted Behind-Right) needs a horizon of the order of a lane
     #: change; 2.0 s is ours, within the 3 s the HGP's training window covers.
@@ -383,7 +388,7 @@ class ContextAwareMap:
         self.frame: EnuFrame | None = (EnuFrame(*self.config.origin)
                                        if self.config.origin is not None else None)
         self._tracks: dict[int, _Track] = {}
-        self._host_predictor = self._new_predictor()
+        self._host_predictor = make_predictor(self.config.host_predictor)
         self._host_history = ConcisePathHistory(tolerance_m=self.config.ph_tolerance_m)
         self._host_t = -math.inf
         self.counters: dict[str, int] = dict.fromkeys(COUNTERS, 0)

@@ -38,8 +38,9 @@ What one step does, in order:
    dropped (``table_full``): nearby vehicles are the ones the safety applications need.
    RVs silent for more than ``stale_after_s`` are evicted (``evicted_stale``).
 4. **HV**: its own predictor (``host_predictor``, CTRV as in SAE J2945/1) and path
-   history are updated with ``host`` (no loss on the HV channel).  The HV path ahead is the arc of radius ``R = v / yaw rate``
-   (:func:`catc.classify.hv_radius_m`), behind it the concise path history.
+   history are updated with ``host`` (no loss on the HV channel).  The HV path ahead is
+   the arc of radius ``R = v / yaw rate`` (:func:`catc.classify.hv_radius_m`), behind it
+   the concise path history.
 5. **Tracking**: every RV is estimated at ``now`` with its predictor (an RV with a fresh
    BSM gets that BSM's state, moved forward by any latency) and at ``now + horizon_s``
    (the predicted position).
@@ -65,19 +66,23 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
+from itertools import chain
 
 import numpy as np
 import numpy.typing as npt
 
 from catc.bsm import BSM
 from catc.classify import (
+    DIRECTION_CODES,
+    LATERAL_CODES,
     ClassifyConfig,
     HostPath,
     ZoneArrays,
-    classify_many,
+    classify_direction,
+    classify_lateral,
+    classify_paths,
     hv_radius_m,
-    lateral_codes,
     trail_offset,
 )
 from catc.geo import EnuFrame
@@ -254,6 +259,8 @@ class _Track:
     #: The consecutive jump rejections, if they agree with each other: (t, x, y, speed, n).
     alt: tuple[float, float, float, float, int] | None = None
     fresh_at: float = math.nan  # the step time that last applied a message
+    #: What snapshots report of ``bsm``: (accel, length, width, hard braking); set with it.
+    bsm_values: tuple[float, float, float, bool] = (0.0, 0.0, 0.0, False)
     est_x: float = math.nan  # last estimate, for the table-full policy
     est_y: float = math.nan
 
@@ -416,10 +423,8 @@ class ContextAwareMap:
         if self.frame is None:
             self.frame = EnuFrame(host.lat, host.lon, 0.0)
         usable = self._admit_fields(now, messages)
-        lat = np.array([host.lat] + [m.lat for _, m in usable])
-        lon = np.array([host.lon] + [m.lon for _, m in usable])
-        ex, ny, _ = self.frame.to_enu(lat, lon, 0.0)
-        ex, ny = np.atleast_1d(ex).tolist(), np.atleast_1d(ny).tolist()
+        ex, ny = self.frame.en_lists([host.lat] + [m.lat for _, m in usable],
+                                     [host.lon] + [m.lon for _, m in usable])
         host_est = self._update_host(now, host, ex[0], ny[0])
         for (t, m), x, y in zip(usable, ex[1:], ny[1:], strict=True):
             self._apply(now, t, m, x, y, host_est)
@@ -427,7 +432,8 @@ class ContextAwareMap:
         snap = self._snapshot(now, host_est)
         if self.apps is not None:
             warnings, events = self.apps(snap)
-            snap = _with_apps(snap, tuple(warnings), tuple(events))
+            if warnings or events:  # else the copy would equal snap, built with () for both
+                snap = _with_apps(snap, tuple(warnings), tuple(events))
         return snap
 
     # -- admission ------------------------------------------------------------------------
@@ -453,7 +459,8 @@ class ContextAwareMap:
                 cnt["future"] += 1
                 continue
             out.append((t, m))
-        out.sort(key=lambda tm: (tm[0], tm[1].temp_id, tm[1].msg_cnt))
+        if len(out) > 1:
+            out.sort(key=lambda tm: (tm[0], tm[1].temp_id, tm[1].msg_cnt))
         return out
 
     def _apply(self, now: float, t: float, m: BSM, x: float, y: float,
@@ -491,6 +498,7 @@ class ContextAwareMap:
         if m.path_history is not None and t - tr.t > _PH_GAP_S:
             self._fill_history(tr.history, m, t, tr.t)
         tr.bsm, tr.t, tr.x, tr.y = m, t, x, y
+        tr.bsm_values = self._bsm_values(m)
         tr.accepted += 1
         tr.fresh_at = now
         tr.predictor.update(_observation(t, x, y, m))
@@ -526,9 +534,15 @@ class ContextAwareMap:
             self._fill_history(hist, m, t, -math.inf)
         hist.add(t, x, y)
         self._tracks[m.temp_id] = _Track(m.temp_id, pred, hist, m, t, x, y, t, fresh_at=now,
-                                         est_x=x, est_y=y)
+                                         est_x=x, est_y=y, bsm_values=self._bsm_values(m))
         self.counters["accepted"] += 1
         self.counters["tracks_created"] += 1
+
+    def _bsm_values(self, m: BSM) -> tuple[float, float, float, bool]:
+        """:attr:`_Track.bsm_values` of a track whose latest BSM is ``m``."""
+        c = self.config
+        return (m.accel_long or 0.0, m.length or c.default_length_m,
+                m.width or c.default_width_m, hard_braking(m, HARD_BRAKING_DECEL))
 
     def _make_room(self, x: float, y: float, host: HostEstimate) -> bool:
         """True when a new track fits (evicting the farthest RV if the newcomer is nearer)."""
@@ -563,7 +577,7 @@ class ContextAwareMap:
                                                 host.yaw_rate))
         self._host_history.add(now, x, y)
         radius = hv_radius_m(speed, host.yaw_rate)
-        history = tuple(self._host_history.points())
+        history = self._host_history.point_tuple()
         path = HostPath(x, y, heading, radius, history)
         p = self._host_predictor.predict(now + c.horizon_s)
         predicted = HostPath(p.x, p.y, p.heading, radius, ((x, y), *history))
@@ -576,71 +590,81 @@ class ContextAwareMap:
         c = self.config
         tracks = list(self._tracks.values())
         n = len(tracks)
-        cur = np.empty((n, 6))
-        fut = np.empty((n, 4))
-        source: list[str] = []
         later = now + c.horizon_s
         prepare([tr.predictor for tr in tracks], later)  # the HGP's forecasts, stacked
-        for i, tr in enumerate(tracks):
+        # One pass over the tracks collects every per-RV value, one row per RV; the rows
+        # become one flat array, column after column (numpy converts a flat list fastest;
+        # filling arrays row by row costs far more), then sliced into the columns.
+        rows: list[tuple] = []
+        flags: list[tuple[bool, bool]] = []  # (fresh, hard braking)
+        source: list[str] = []
+        for tr in tracks:
             p = tr.predictor.predict(now)
             q = tr.predictor.predict(later)
-            cur[i] = (p.x, p.y, p.speed, p.heading, p.var_x, p.var_y)
-            fut[i] = (q.x, q.y, q.speed, q.heading)
+            accel, length, width, hard = tr.bsm_values
+            rows.append((p.x, q.x, p.y, q.y, p.speed, q.speed, p.heading, q.heading,
+                         p.var_x, p.var_y, now - tr.t, accel, length, width))
+            flags.append((tr.fresh_at == now, hard))
             source.append(p.source)
             tr.est_x, tr.est_y = p.x, p.y
+        values = _flat_columns(rows, np.float64)
+        (x, pred_x, y, pred_y, speed, pred_speed, heading, pred_heading, var_x, var_y, age,
+         accel, length, width) = [values[i * n:(i + 1) * n] for i in range(14)]
+        fresh_hard = _flat_columns(flags, np.bool_)
+        fresh, hard = fresh_hard[:n], fresh_hard[n:]
         ids = np.array([tr.temp_id for tr in tracks], dtype=np.int64)
-        bsm_cols = np.array([(tr.bsm.accel_long or 0.0, now - tr.t,
-                              tr.bsm.length or c.default_length_m,
-                              tr.bsm.width or c.default_width_m) for tr in tracks]
-                            ).reshape(n, 4)
-        zone = classify_many(host.path, cur[:, 0], cur[:, 1], cur[:, 3], c.classify)
-        on_trail = np.zeros(n, dtype=bool)
+        # now and later, x, y and heading: the rows of both paths, each n long
+        zone, predicted_zone = classify_paths(
+            (host.path, host.predicted_path), (n, n), values[:2 * n], values[2 * n:4 * n],
+            values[6 * n:8 * n], c.classify)
         if c.trail_lanes and n:
-            zone, on_trail = self._trail_lanes(tracks, zone, cur, host)
-        predicted_zone = classify_many(host.predicted_path, fut[:, 0], fut[:, 1], fut[:, 3],
-                                       c.classify)
-        return MapSnapshot(
-            t=now, horizon_s=c.horizon_s, host=host, ids=ids,
-            x=cur[:, 0], y=cur[:, 1], speed=cur[:, 2], heading=cur[:, 3],
-            accel=bsm_cols[:, 0], var_x=cur[:, 4], var_y=cur[:, 5], source=tuple(source),
-            age=bsm_cols[:, 1], fresh=np.array([tr.fresh_at == now for tr in tracks],
-                                               dtype=bool),
-            lane=np.rint(zone.d / c.classify.w_lane).astype(np.int64),
-            zone=zone, pred_x=fut[:, 0], pred_y=fut[:, 1], pred_heading=fut[:, 3],
-            pred_speed=fut[:, 2], predicted_zone=predicted_zone,
-            hard_braking=np.array([hard_braking(tr.bsm, HARD_BRAKING_DECEL) for tr in tracks],
-                                  dtype=bool),
-            length=bsm_cols[:, 2], width=bsm_cols[:, 3], on_trail=on_trail,
-            counters=dict(self.counters))
+            zone, on_trail = self._trail_lanes(tracks, zone, host)
+        else:
+            on_trail = np.zeros(n, dtype=bool)
+        return _snapshot_of(
+            t=now, horizon_s=c.horizon_s, host=host, ids=ids, x=x, y=y, speed=speed,
+            heading=heading, accel=accel, var_x=var_x, var_y=var_y, source=tuple(source),
+            age=age, fresh=fresh, lane=np.rint(zone.d / c.classify.w_lane).astype(np.int64),
+            zone=zone, pred_x=pred_x, pred_y=pred_y, pred_heading=pred_heading,
+            pred_speed=pred_speed, predicted_zone=predicted_zone, hard_braking=hard,
+            length=length, width=width, on_trail=on_trail, counters=dict(self.counters),
+            warnings=(), events=())
 
-    def _trail_lanes(self, tracks: list[_Track], zone: ZoneArrays, cur: np.ndarray,
-                     host: HostEstimate) -> tuple[ZoneArrays, npt.NDArray[np.bool_]]:
+    def _trail_lanes(self, tracks: list[_Track], zone: ZoneArrays, host: HostEstimate
+                     ) -> tuple[ZoneArrays, npt.NDArray[np.bool_]]:
         """Offsets and lane heading along the trails of RVs ahead (module docstring, 6).
 
         Candidates: Ahead within ``trail_range_m`` and not Oncoming.  When the HV lies on
         an RV's trail, ``s`` is the distance along it, ``d`` minus the HV's offset from
-        it, and Eq. (tc_heading) compares the HV's heading with the trail's there.
+        it, and Eq. (tc_heading) compares the HV's heading with the trail's there.  The
+        trail starts at the RV's current estimate (``est_x, est_y``, set by _snapshot).
         """
         c = self.config
-        cand = np.flatnonzero(zone.ahead & (zone.direction != 1) & (zone.s <= c.trail_range_m))
-        s, d = zone.s.copy(), zone.d.copy()
-        lane, diff = zone.lane_heading_deg.copy(), zone.heading_diff_deg.copy()
+        cand = (zone.ahead & (zone.direction != 1) & (zone.s <= c.trail_range_m)).nonzero()[0]
         used = np.zeros(len(tracks), dtype=bool)
+        found = []
         for i in cand.tolist():
-            trail = [(float(cur[i, 0]), float(cur[i, 1])), *tracks[i].history.points()]
+            tr = tracks[i]
+            trail = ((float(tr.est_x), float(tr.est_y)), *tr.history.point_tuple())
             off = trail_offset(trail, (host.x, host.y))
             if off is not None:
-                s[i], d[i], lane[i] = off[0], -off[1], off[2]
-                diff[i] = abs((host.heading - off[2] + 180.0) % 360.0 - 180.0)
-                used[i] = True
-        if not used.any():
+                found.append((i, off))
+        if not found:
             return zone, used
+        s, d = zone.s.copy(), zone.d.copy()
+        lane, diff = zone.lane_heading_deg.copy(), zone.heading_diff_deg.copy()
+        lateral, direction = zone.lateral.copy(), zone.direction.copy()
         cc = c.classify
-        direction = np.select([diff <= cc.delta_phi_ongoing, diff >= cc.delta_phi_oncoming],
-                              [0, 1], 2).astype(np.int8)
-        return replace(zone, s=s, d=d, lateral=lateral_codes(d, cc.w_lane),
-                       direction=direction, lane_heading_deg=lane,
-                       heading_diff_deg=diff), used
+        for i, (si, di, lane_i) in found:
+            s[i], d[i], lane[i] = si, -di, lane_i
+            diff[i] = diff_i = abs((host.heading - lane_i + 180.0) % 360.0 - 180.0)
+            used[i] = True
+            # Eqs. (tc_lateral) and (tc_heading) on the new values: the scalar forms make
+            # the same float comparisons as lateral_codes / direction_codes on the arrays.
+            lateral[i] = LATERAL_CODES.index(classify_lateral(-di, cc.w_lane))
+            direction[i] = DIRECTION_CODES.index(classify_direction(diff_i, cc))
+        # ahead stays the HV-path classification.
+        return ZoneArrays(zone.ahead, lateral, direction, s, d, lane, diff), used
 
     def _new_predictor(self) -> Predictor:
         return make_predictor(self.config.predictor, **self._predictor_kwargs)
@@ -651,6 +675,22 @@ def _observation(t: float, x: float, y: float, m: BSM) -> Observation:
                        m.yaw_rate)
 
 
+def _flat_columns(rows: list[tuple], dtype: type) -> np.ndarray:
+    """The columns of ``rows`` one after the other, as one flat array."""
+    return np.array(list(chain.from_iterable(zip(*rows, strict=True))), dtype=dtype)
+
+
+def _snapshot_of(**values) -> MapSnapshot:
+    """``MapSnapshot(**values)`` with every field given, without the frozen dataclass's
+    ``__init__`` (one ``object.__setattr__`` per field, a measurable part of a tick with
+    a few RVs): MapSnapshot has no ``__post_init__`` and no ``init=False`` field, so an
+    instance whose ``__dict__`` holds the fields is the one ``__init__`` would build."""
+    snap = object.__new__(MapSnapshot)
+    snap.__dict__.update(values)
+    return snap
+
+
 def _with_apps(snap: MapSnapshot, warnings: tuple, events: tuple) -> MapSnapshot:
-    """The snapshot with the applications' output (a copy: snapshots are immutable)."""
-    return replace(snap, warnings=warnings, events=events)
+    """The snapshot with the applications' output (a copy: snapshots are immutable), as
+    ``dataclasses.replace`` would make it (see :func:`_snapshot_of`)."""
+    return _snapshot_of(**{**snap.__dict__, "warnings": warnings, "events": events})

@@ -59,6 +59,7 @@ import enum
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from itertools import chain, pairwise
 
 import numpy as np
 import numpy.typing as npt
@@ -81,6 +82,8 @@ __all__ = [
     "classify_longitudinal",
     "classify_many",
     "classify_pair",
+    "classify_paths",
+    "direction_codes",
     "heading_difference_deg",
     "hv_radius_m",
     "lateral_codes",
@@ -206,9 +209,13 @@ class HostPath:
     def __post_init__(self) -> None:
         if self.radius_m == 0.0 or math.isnan(self.radius_m):
             raise ValueError(f"radius_m must be non-zero (inf for straight), got {self.radius_m}")
-        object.__setattr__(
-            self, "history", tuple((float(px), float(py)) for px, py in self.history)
-        )
+        # tuple((float(px), float(py)) for px, py in history), iterated in C: the HV path
+        # is built every tick with a history of up to two dozen points.
+        history = tuple(self.history)  # the same tuple when it is one
+        if not {2}.issuperset(map(len, history)):
+            raise ValueError("every history point must be a pair (x, y)")
+        coords = map(float, chain.from_iterable(history))
+        object.__setattr__(self, "history", tuple(zip(coords, coords, strict=True)))
 
     @classmethod
     def from_motion(
@@ -422,15 +429,20 @@ class ZoneArrays:
                     float(self.s[i]), float(self.d[i]), float(self.heading_diff_deg[i]))
 
 
-def _project_arc_many(host: HostPath, u: Array, v: Array) -> tuple[Array, Array, Array]:
-    """:meth:`HostPath._on_arc` for arrays (same formulas, same branch at k = 0)."""
-    k = host.curvature
+def _project_arc_many(k: float, heading_deg: float | Array, lane_k0: float | Array,
+                      u: Array, v: Array) -> tuple[Array, Array, Array]:
+    """:meth:`HostPath._on_arc` for arrays (same formulas, same branch at k = 0).
+
+    ``heading_deg`` is the HV heading and ``lane_k0`` its ``heading_deg % 360.0``: scalars,
+    or one per row when the rows belong to several paths of curvature ``k``.
+    """
     if k == 0.0:
-        return u.copy(), v.copy(), np.full(u.shape, host.heading_deg % 360.0)
-    alpha = np.arctan2(k * u, 1.0 - k * v)
+        return u.copy(), v.copy(), np.full(u.shape, lane_k0)
+    ku, kv = k * u, 1.0 - k * v  # each used twice below, as the scalar formulas use them
+    alpha = np.arctan2(ku, kv)
     s = np.where(u >= 0.0, 1.0, -1.0) * np.abs(alpha) / abs(k)
-    d = (2.0 * v - k * (u * u + v * v)) / (1.0 + np.hypot(k * u, 1.0 - k * v))
-    return s, d, (host.heading_deg + np.degrees(k * s)) % 360.0
+    d = (2.0 * v - k * (u * u + v * v)) / (1.0 + np.hypot(ku, kv))
+    return s, d, (heading_deg + np.degrees(k * s)) % 360.0
 
 
 def _project_history_many(host: HostPath, px: Array, py: Array
@@ -465,11 +477,39 @@ def _project_history_many(host: HostPath, px: Array, py: Array
     return s, d, np.asarray(enu_heading_deg(fx, fy), dtype=float)
 
 
+#: Up to this many rows (RV positions) :func:`classify_many` and :func:`classify_paths` go
+#: row by row on Python floats (:func:`_classify_small`): the few RVs of a tick cost a
+#: fraction of numpy's ~50 calls, each of which costs a microsecond or two whatever the
+#: size.  Above it, the numpy path.
+_SMALL_ROWS = 16
+
+
+def _first_true(conditions: Sequence[npt.NDArray[np.bool_]], default: int
+                ) -> npt.NDArray[np.int8]:
+    """``np.select(conditions, range(len(conditions)), default)`` as int8: the index of the
+    first true condition, else ``default``.  Applied last condition first, each overriding
+    the ones after it, so the first true one wins exactly as in ``np.select`` (which costs
+    several times as much)."""
+    out = np.full(np.shape(conditions[0]), default, dtype=np.int8)
+    for code in range(len(conditions) - 1, -1, -1):
+        out = np.where(conditions[code], np.int8(code), out)
+    return out
+
+
 def lateral_codes(d: Array, w_lane: float) -> npt.NDArray[np.int8]:
     """Eq. (tc_lateral) on offsets ``d`` (positive right): codes into :data:`LATERAL_CODES`."""
     ld = -np.asarray(d, dtype=float)
-    return np.select([ld > 1.5 * w_lane, ld > 0.5 * w_lane, ld >= -0.5 * w_lane,
-                      ld >= -1.5 * w_lane], [0, 1, 2, 3], 4).astype(np.int8)
+    return _first_true([ld > 1.5 * w_lane, ld > 0.5 * w_lane, ld >= -0.5 * w_lane,
+                        ld >= -1.5 * w_lane], 4)
+
+
+def direction_codes(diff_deg: Array, config: ClassifyConfig = _DEFAULT
+                    ) -> npt.NDArray[np.int8]:
+    """Eq. (tc_heading) on ``|phi_RV - phi_lane|`` in ``[0, 180]``: codes into
+    :data:`DIRECTION_CODES` (:func:`classify_direction` for arrays)."""
+    diff_deg = np.asarray(diff_deg, dtype=float)
+    return _first_true([diff_deg <= config.delta_phi_ongoing,
+                        diff_deg >= config.delta_phi_oncoming], 2)
 
 
 def classify_many(host: HostPath, x: npt.ArrayLike, y: npt.ArrayLike,
@@ -479,28 +519,150 @@ def classify_many(host: HostPath, x: npt.ArrayLike, y: npt.ArrayLike,
     Same projection and thresholds as the scalar path (the tests check them against each
     other entry by entry); vectorised because the OBU classifies hundreds of RVs per tick.
     """
+    return _classify_rows((host,), None, x, y, heading_deg, config)[0]
+
+
+def classify_paths(hosts: Sequence[HostPath], counts: Sequence[int], x: npt.ArrayLike,
+                   y: npt.ArrayLike, heading_deg: npt.ArrayLike,
+                   config: ClassifyConfig = _DEFAULT) -> list[ZoneArrays]:
+    """:func:`classify_many` of several paths' RVs: the first ``counts[0]`` rows of ``x, y,
+    heading_deg`` against ``hosts[0]``, the next ``counts[1]`` against ``hosts[1]``, ...
+
+    The CAM classifies the current positions against the HV path and the predicted ones
+    against the HV's predicted path, which has the same curvature.  Paths of one curvature
+    are done in one pass over all the rows, each row with its own path's values: with a
+    few RVs a tick's cost is per call, not per row.  Every row goes through the same
+    operations as in a pass of its own, so the results are those of :func:`classify_many`
+    of each path bit for bit (paths of different curvatures are done one by one).
+    """
+    bounds = []
+    lo = 0
+    for n in counts:
+        bounds.append((lo, lo + n))
+        lo += n
+    if len({h.curvature for h in hosts}) > 1:
+        return [classify_many(h, x[lo:hi], y[lo:hi], heading_deg[lo:hi], config)
+                for h, (lo, hi) in zip(hosts, bounds, strict=True)]
+    return _classify_rows(hosts, bounds, x, y, heading_deg, config)
+
+
+def _path_row(host: HostPath) -> tuple[float, float, float, float, float, float]:
+    """What the projection needs of a path: x, y, sin and cos of the heading, heading and
+    heading mod 360 (the arc's lane heading at curvature 0)."""
+    h = math.radians(host.heading_deg)
+    return (host.x, host.y, math.sin(h), math.cos(h), host.heading_deg,
+            host.heading_deg % 360.0)
+
+
+def _classify_rows(hosts: Sequence[HostPath], bounds: list[tuple[int, int]] | None,
+                   x: npt.ArrayLike, y: npt.ArrayLike, heading_deg: npt.ArrayLike,
+                   config: ClassifyConfig) -> list[ZoneArrays]:
+    """Rows ``lo:hi`` of each ``bounds[j]`` against ``hosts[j]`` (paths of one curvature);
+    ``bounds`` None: one host, arrays of any shape the arithmetic broadcasts."""
     x = np.asarray(x, dtype=float)
     y = np.asarray(y, dtype=float)
     rv_heading = np.asarray(heading_deg, dtype=float)
-    h = math.radians(host.heading_deg)
-    sh, ch = math.sin(h), math.cos(h)
-    dx, dy = x - host.x, y - host.y
+    if x.ndim == 1 and len(x) <= _SMALL_ROWS and x.shape == y.shape == rv_heading.shape:
+        return _classify_small(hosts, bounds or [(0, len(x))], x, y, rv_heading, config)
+    if len(hosts) == 1:
+        hx, hy, sh, ch, hh, lane_k0 = _path_row(hosts[0])
+    else:  # the path's values on each of its rows
+        rows = np.repeat(np.array([_path_row(h) for h in hosts]),
+                         [hi - lo for lo, hi in bounds], axis=0)
+        hx, hy, sh, ch, hh, lane_k0 = rows.T
+    dx, dy = x - hx, y - hy
     u, v = dx * sh + dy * ch, dx * ch - dy * sh
-    s, d, lane = _project_arc_many(host, u, v)
+    s, d, lane = _project_arc_many(hosts[0].curvature, hh, lane_k0, u, v)
     behind = u < 0.0
-    if host.history and behind.any():
-        idx = np.flatnonzero(behind)
+    for host, (lo, hi) in zip(hosts, bounds or [(0, None)], strict=True):
+        rows_behind = behind if hi is None else behind[lo:hi]
+        if not (host.history and rows_behind.any()):
+            continue
+        idx = np.flatnonzero(rows_behind) + lo
         hist = _project_history_many(host, x[idx], y[idx])
         if hist is not None:
-            hs, hd, hh = hist
+            hs, hd, hl = hist
             use = hs < 0.0
             sel = idx[use]
-            s[sel], d[sel], lane[sel] = hs[use], hd[use], hh[use]
+            s[sel], d[sel], lane[sel] = hs[use], hd[use], hl[use]
     diff = np.abs(np.asarray(heading_diff_deg(rv_heading, lane), dtype=float))
-    lateral = lateral_codes(d, config.w_lane)
-    direction = np.select([diff <= config.delta_phi_ongoing, diff >= config.delta_phi_oncoming],
-                          [0, 1], 2).astype(np.int8)
-    return ZoneArrays(s >= 0.0, lateral, direction, s, d, lane, diff)
+    fields = (s >= 0.0, lateral_codes(d, config.w_lane), direction_codes(diff, config),
+              s, d, lane, diff)
+    if bounds is None:
+        return [ZoneArrays(*fields)]
+    return [ZoneArrays(*(f[lo:hi] for f in fields)) for lo, hi in bounds]
+
+
+def _classify_small(hosts: Sequence[HostPath], bounds: list[tuple[int, int]], x: Array,
+                    y: Array, rv_heading: Array, config: ClassifyConfig) -> list[ZoneArrays]:
+    """:func:`_classify_rows` of a few rows (1-d arrays), row by row on Python floats.
+
+    The results are the numpy path's bit for bit: ``+ - * /``, ``abs``, comparisons, ``%``
+    (fmod corrected to the divisor's sign, in CPython as in numpy's remainder) and
+    ``math.degrees`` (a product with the constant 180/pi, as ``np.degrees``) are the IEEE
+    operations numpy applies to each entry, here in the same order; arctan2 and hypot,
+    whose numpy and math versions need not agree, are numpy's on arrays of the rows, as
+    there; Eqs. (tc_lateral) and (tc_heading) are the scalar classifiers, which make the
+    numpy path's comparisons.  tests/test_cam_exact.py runs both paths on the same rows.
+    """
+    k = hosts[0].curvature
+    xs, ys = x.tolist(), y.tolist()
+    rows = []  # (u, v, HV heading, HV heading mod 360) of each row
+    ku: list[float] = []  # k u and 1 - k v, the arguments of arctan2 and hypot
+    kv: list[float] = []
+    behind: list[list[int]] = []  # per path, its rows with u < 0
+    for host, (lo, hi) in zip(hosts, bounds, strict=True):
+        hx, hy, sh, ch, h, h0 = _path_row(host)
+        behind.append([])
+        for i in range(lo, hi):
+            dx, dy = xs[i] - hx, ys[i] - hy
+            u, v = dx * sh + dy * ch, dx * ch - dy * sh
+            rows.append((u, v, h, h0))
+            ku.append(k * u)
+            kv.append(1.0 - k * v)
+            if u < 0.0:
+                behind[-1].append(i)
+    s: list[float] = []
+    d: list[float] = []
+    lane: list[float] = []
+    if k == 0.0:  # _project_arc_many, row by row
+        for u, v, _, h0 in rows:
+            s.append(u)
+            d.append(v)
+            lane.append(h0)
+    else:
+        ku_a, kv_a = np.array(ku), np.array(kv)
+        for (u, v, h, _), a, hp in zip(rows, np.arctan2(ku_a, kv_a).tolist(),
+                                       np.hypot(ku_a, kv_a).tolist(), strict=True):
+            si = (1.0 if u >= 0.0 else -1.0) * abs(a) / abs(k)
+            s.append(si)
+            d.append((2.0 * v - k * (u * u + v * v)) / (1.0 + hp))
+            lane.append((h + math.degrees(k * si)) % 360.0)
+    for host, idx in zip(hosts, behind, strict=True):
+        if not (host.history and idx):
+            continue
+        hist = _project_history_many(host, x[idx], y[idx])
+        if hist is not None:
+            for i, hs, hd, hl in zip(idx, *(a.tolist() for a in hist), strict=True):
+                if hs < 0.0:
+                    s[i], d[i], lane[i] = hs, hd, hl
+    diff: list[float] = []  # |heading_diff_deg|: wrapped to [-180, 180) as geo._wrap180
+    lateral_l: list[int] = []
+    direction_l: list[int] = []
+    for h, di, ln in zip(rv_heading.tolist(), d, lane, strict=True):
+        w = (h - ln + 180.0) % 360.0
+        df = abs((0.0 if w >= 360.0 else w) - 180.0)
+        diff.append(df)
+        lateral_l.append(LATERAL_CODES.index(classify_lateral(di, config.w_lane)))
+        direction_l.append(DIRECTION_CODES.index(classify_direction(df, config)))
+    # Flat arrays (numpy converts a flat list fastest), field after field, sliced per path.
+    n = len(rows)
+    values = np.array(s + d + lane + diff, dtype=np.float64)
+    codes = np.array(lateral_l + direction_l, dtype=np.int8)
+    ahead = values[:n] >= 0.0
+    return [ZoneArrays(ahead[lo:hi], codes[lo:hi], codes[n + lo:n + hi], values[lo:hi],
+                       values[n + lo:n + hi], values[2 * n + lo:2 * n + hi],
+                       values[3 * n + lo:3 * n + hi]) for lo, hi in bounds]
 
 
 def trail_offset(trail: Sequence[Point], p: Point) -> tuple[float, float, float] | None:
@@ -520,16 +682,19 @@ def trail_offset(trail: Sequence[Point], p: Point) -> tuple[float, float, float]
     best: tuple[float, float, float, float, float] | None = None  # (dist2, s, d, fx, fy)
     walked = 0.0
     last = len(trail) - 2
-    for i in range(last + 1):
-        (nx, ny), (ox, oy) = trail[i], trail[i + 1]  # newer, older
+    sqrt = math.sqrt
+    for i, ((nx, ny), (ox, oy)) in enumerate(pairwise(trail)):  # newer, older
         bx, by = ox - nx, oy - ny
         seg2 = bx * bx + by * by
         if seg2 == 0.0:
             continue
-        seg = math.sqrt(seg2)
+        seg = sqrt(seg2)
         t = ((px - nx) * bx + (py - ny) * by) / seg2
         off_head, off_tail = (i == 0 and t < 0.0), (i == last and t > 1.0)
-        t = min(max(t, 0.0), 1.0)
+        if t < 0.0:  # t = min(max(t, 0.0), 1.0), NaN and -0.0 included
+            t = 0.0
+        elif t > 1.0:
+            t = 1.0
         ex, ey = px - (nx + t * bx), py - (ny + t * by)
         dist2 = ex * ex + ey * ey
         if best is None or dist2 < best[0]:
@@ -538,7 +703,7 @@ def trail_offset(trail: Sequence[Point], p: Point) -> tuple[float, float, float]
             else:
                 fx, fy = -bx / seg, -by / seg  # direction of travel
                 side = ex * fy - ey * fx
-                best = (dist2, walked + t * seg, math.copysign(math.sqrt(dist2), side), fx, fy)
+                best = (dist2, walked + t * seg, math.copysign(sqrt(dist2), side), fx, fy)
         walked += seg
     if best is None or math.isnan(best[1]):
         return None

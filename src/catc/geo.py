@@ -30,6 +30,8 @@ NaN input propagates to NaN output; a latitude outside [-90, 90] gives inf
 from __future__ import annotations
 
 import math
+import typing
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import cache
 
@@ -58,6 +60,13 @@ Coord = float | npt.ArrayLike
 FloatOrArray = float | npt.NDArray[np.float64]
 
 
+#: Up to this many points :meth:`EnuFrame.to_enu` goes point by point: a tick of the CAM
+#: converts the HV and the few BSMs it received, where per-call costs dominate.
+_SMALL_POINTS = 16
+#: A float or a float array (what :meth:`EnuFrame._rotate` takes and gives).
+_F = typing.TypeVar("_F", float, npt.NDArray[np.float64])
+
+
 @cache
 def _to_ecef() -> Transformer:
     # always_xy: (lon, lat, h) order whatever the CRS axis order says.
@@ -75,9 +84,23 @@ def _geod() -> Geod:
 
 
 def _arrays(*values: Coord) -> tuple[bool, list[npt.NDArray[np.float64]]]:
-    """Broadcast the inputs to float64 arrays; also say whether all were scalars."""
-    scalar = all(np.ndim(v) == 0 for v in values)
-    arrays = np.broadcast_arrays(*(np.asarray(v, dtype=np.float64) for v in values))
+    """Broadcast the inputs to float64 arrays; also say whether all were scalars.
+
+    The common cases skip :func:`numpy.broadcast_arrays` (tens of microseconds, the
+    largest cost of a call on a few points): inputs of one shape are returned as they
+    are, and 0-d inputs beside arrays of one shape are filled out to that shape.  The
+    values are those broadcasting gives; only read-only views become fresh arrays.
+    """
+    arrays = [np.asarray(v, dtype=np.float64) for v in values]
+    shapes = {a.shape for a in arrays}
+    scalar = shapes == {()}
+    if len(shapes) > 1:
+        shapes.discard(())
+        if len(shapes) == 1:
+            (shape,) = shapes
+            arrays = [a if a.shape == shape else np.full(shape, a) for a in arrays]
+        else:
+            arrays = list(np.broadcast_arrays(*arrays))
     return scalar, arrays
 
 
@@ -85,17 +108,22 @@ def _out(value: npt.NDArray[np.float64], scalar: bool) -> FloatOrArray:
     return float(value) if scalar else value
 
 
+def _transform_arrays(
+    transformer: Transformer, a: npt.NDArray[np.float64], b: npt.NDArray[np.float64],
+    c: npt.NDArray[np.float64],
+) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """``transformer`` on float64 arrays of one shape (as :func:`_arrays` returns them)."""
+    shape = a.shape
+    p, q, r = transformer.transform(a.ravel(), b.ravel(), c.ravel())
+    return p.reshape(shape), q.reshape(shape), r.reshape(shape)
+
+
 def _transform(
     transformer: Transformer, a: Coord, b: Coord, c: Coord
 ) -> tuple[FloatOrArray, FloatOrArray, FloatOrArray]:
     scalar, (a, b, c) = _arrays(a, b, c)
-    shape = a.shape
-    p, q, r = transformer.transform(a.ravel(), b.ravel(), c.ravel())
-    return (
-        _out(np.reshape(p, shape), scalar),
-        _out(np.reshape(q, shape), scalar),
-        _out(np.reshape(r, shape), scalar),
-    )
+    p, q, r = _transform_arrays(transformer, a, b, c)
+    return _out(p, scalar), _out(q, scalar), _out(r, scalar)
 
 
 def geodetic_to_ecef(
@@ -180,19 +208,53 @@ class EnuFrame:
         object.__setattr__(self, "h0", h0)
         object.__setattr__(self, "rotation", rotation)
         object.__setattr__(self, "r0", r0)
+        # r0 and the rows of R as Python floats (the same values), for to_enu: indexing
+        # the arrays on every call costs more than the arithmetic on a few points.
+        object.__setattr__(self, "_coefficients", (tuple(r0.tolist()),
+                                                  *map(tuple, rotation.tolist())))
 
     def to_enu(
         self, lat: Coord, lon: Coord, h: Coord = 0.0
     ) -> tuple[FloatOrArray, FloatOrArray, FloatOrArray]:
         """Geodetic ``(lat, lon, h)`` (degrees, degrees, m) -> ``(e, n, u)`` in m."""
         scalar, (lat, lon, h) = _arrays(lat, lon, h)
-        x, y, z = geodetic_to_ecef(lat, lon, h)
-        d = (x - self.r0[0], y - self.r0[1], z - self.r0[2])
-        r = self.rotation
-        e = r[0, 0] * d[0] + r[0, 1] * d[1]  # r[0, 2] is 0
-        n = r[1, 0] * d[0] + r[1, 1] * d[1] + r[1, 2] * d[2]
-        u = r[2, 0] * d[0] + r[2, 1] * d[1] + r[2, 2] * d[2]
+        if 0 < lat.size <= _SMALL_POINTS:
+            points = self._points(lat.ravel().tolist(), lon.ravel().tolist(), h.ravel().tolist())
+            e, n, u = [np.array(c, dtype=np.float64).reshape(lat.shape)
+                       for c in zip(*points, strict=True)]
+        else:
+            e, n, u = self._rotate(*_transform_arrays(_to_ecef(), lon, lat, h))
         return _out(e, scalar), _out(n, scalar), _out(u, scalar)
+
+    def en_lists(self, lat: Sequence[float], lon: Sequence[float]
+                 ) -> tuple[list[float], list[float]]:
+        """East and north (m) of the points ``(lat[i], lon[i])`` (degrees) at ellipsoidal
+        height 0, as lists of floats: ``to_enu(lat, lon, 0.0)[:2]``, value for value,
+        without building arrays for a few points (the CAM converts the HV and the BSMs
+        it received at every tick)."""
+        if len(lat) > _SMALL_POINTS:
+            e, n, _ = self.to_enu(lat, lon, 0.0)
+            return e.tolist(), n.tolist()
+        points = self._points(lat, lon, [0.0] * len(lat))
+        return [p[0] for p in points], [p[1] for p in points]
+
+    def _points(self, lat: Sequence[float], lon: Sequence[float], h: Sequence[float]
+                ) -> list[tuple[float, float, float]]:
+        """``(e, n, u)`` of each point, one by one on Python floats: pyproj's one-point
+        transform gives what its array transform gives (PROJ's proj_trans_generic applies
+        proj_trans to each point in turn), and :meth:`_rotate` does the same IEEE
+        operations on floats as on arrays."""
+        transform = _to_ecef().transform
+        return [self._rotate(*transform(lo, la, hh))
+                for la, lo, hh in zip(lat, lon, h, strict=True)]
+
+    def _rotate(self, x: _F, y: _F, z: _F) -> tuple[_F, _F, _F]:
+        """ECEF ``(x, y, z)`` -> ``(e, n, u)``: ``R (r - r0)``, on floats or arrays alike."""
+        (x0, y0, z0), (r00, r01, _), (r10, r11, r12), (r20, r21, r22) = self._coefficients
+        d0, d1, d2 = x - x0, y - y0, z - z0
+        return (r00 * d0 + r01 * d1,  # r[0, 2] is 0
+                r10 * d0 + r11 * d1 + r12 * d2,
+                r20 * d0 + r21 * d1 + r22 * d2)
 
     def to_geodetic(
         self, e: Coord, n: Coord, u: Coord = 0.0

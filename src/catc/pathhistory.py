@@ -77,6 +77,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from operator import itemgetter
 
 import numpy as np
 
@@ -95,6 +96,9 @@ Crumb = tuple[float, float, float]
 _MERGE_FRACTION = 0.25
 
 _TWO_PI = 2.0 * math.pi
+
+#: (x, y) of a crumb (t, x, y).
+_XY = itemgetter(1, 2)
 
 
 class ConcisePathHistory:
@@ -303,9 +307,13 @@ class ConcisePathHistory:
 
     def points(self) -> list[Point]:
         """``(x, y)`` of the concise polyline, most recent first, from the current sample."""
+        return list(self.point_tuple())
+
+    def point_tuple(self) -> tuple[Point, ...]:
+        """:meth:`points` as a tuple (the cached one: no copy)."""
         if self._pcache is None:
-            self._pcache = tuple((x, y) for _, x, y in self._crumbs())
-        return list(self._pcache)
+            self._pcache = tuple(map(_XY, self._crumbs()))
+        return self._pcache
 
     def __len__(self) -> int:
         return len(self._crumbs())

@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 import zlib
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -44,16 +44,57 @@ def _opt(v: float) -> float | None:
     return None if not math.isfinite(v) else float(v)
 
 
+#: The per-sample columns of a Track that a BSM carries, in :func:`_bsm` argument order.
+_BSM_COLUMNS = ("t", "lat", "lon", "elev", "speed", "heading", "accel", "yaw_rate")
+
+
+def _size(track: Track) -> tuple[float | None, float | None]:
+    """``(length, width)`` of a track's BSMs; None when unknown."""
+    return _opt(track.length), _opt(track.width)
+
+
+def _bsm(msg_cnt: int, tid: int, size: tuple[float | None, float | None], t: float,
+         lat: float, lon: float, elev: float, speed: float, heading: float, accel: float,
+         yaw_rate: float) -> BSM:
+    """The BSM of one sample of a track (:func:`_size`) from its values (Python floats)."""
+    length, width = size
+    return BSM(
+        msg_cnt=msg_cnt, temp_id=tid, sec_mark=round(t * 1000.0) % 60_000, lat=lat, lon=lon,
+        elev=_opt(elev), speed=speed, heading=heading % 360.0, accel_long=accel,
+        yaw_rate=yaw_rate, length=length, width=width)
+
+
+def _sample(track: Track, i: int) -> list[float]:
+    """Sample ``i`` of the :data:`_BSM_COLUMNS` of ``track``."""
+    return [float(getattr(track, c)[i]) for c in _BSM_COLUMNS]
+
+
 def track_bsm(track: Track, i: int, tid: int | None = None) -> BSM:
     """The BSM for sample ``i`` of ``track`` (see the module docstring for each field)."""
-    t = float(track.t[i])
-    return BSM(
-        msg_cnt=i % 128, temp_id=temp_id(track.vehicle_id) if tid is None else tid,
-        sec_mark=round(t * 1000.0) % 60_000, lat=float(track.lat[i]), lon=float(track.lon[i]),
-        elev=_opt(float(track.elev[i])), speed=float(track.speed[i]),
-        heading=float(track.heading[i]) % 360.0, accel_long=float(track.accel[i]),
-        yaw_rate=float(track.yaw_rate[i]), length=_opt(track.length),
-        width=_opt(track.width))
+    return _bsm(i % 128, temp_id(track.vehicle_id) if tid is None else tid, _size(track),
+                *_sample(track, i))
+
+
+class _SampleBsms:
+    """``bsm(vehicle, i, msg_cnt)``: :func:`track_bsm` of a plan's vehicle with another
+    msgCnt (what :meth:`Plan.bsm` gives), from each track's columns converted to Python
+    floats once (``tolist`` gives the values ``float(column[i])`` gives) instead of
+    reading numpy scalars for every message."""
+
+    def __init__(self, the_plan: Plan) -> None:
+        self._plan = the_plan
+        self._vehicles: dict[int, tuple] = {}
+
+    def bsm(self, vehicle: int, i: int, msg_cnt: int) -> BSM:
+        v = self._vehicles.get(vehicle)
+        if v is None:
+            tr = self._plan.table.tracks[self._plan.vehicles[vehicle]]
+            cols = [np.asarray(getattr(tr, c), dtype=np.float64).tolist()
+                    for c in _BSM_COLUMNS]
+            rows = list(zip(*cols, strict=True))
+            v = self._vehicles[vehicle] = (temp_id(tr.vehicle_id), _size(tr), rows)
+        tid, size, rows = v
+        return _bsm(msg_cnt, tid, size, *rows[i])
 
 
 #: ``received(vehicle_id, sample_index) -> bool``: the channel's decision for a message.
@@ -125,8 +166,8 @@ class Plan:
     def bsm(self, event: np.void) -> BSM:
         """The BSM of one event (msgCnt from the send sequence)."""
         tr = self.table.tracks[self.vehicles[int(event["vehicle"])]]
-        m = track_bsm(tr, int(event["index"]))
-        return replace(m, msg_cnt=int(event["seq"]) % 128)
+        return _bsm(int(event["seq"]) % 128, temp_id(tr.vehicle_id), _size(tr),
+                    *_sample(tr, int(event["index"])))
 
 
 def plan(table: MobilityTable, config: ChannelConfig, seed: int = 0,
@@ -187,13 +228,16 @@ def simulate(the_plan: Plan, cam: ContextAwareMap, wire: bool = True
 
     clock = SecMarkClock()
     pending: list[BSM] = []
-    for ev in the_plan.events:
-        if ev["dropped"]:
+    bsms = _SampleBsms(the_plan)
+    ev = the_plan.events
+    columns = (ev[c].tolist() for c in ("dropped", "host", "vehicle", "index", "seq"))
+    for dropped, host, vehicle, index, seq in zip(*columns, strict=True):
+        if dropped:
             continue
-        m = the_plan.bsm(ev)
+        m = bsms.bsm(vehicle, index, seq % 128)  # the_plan.bsm(event)
         if wire:
             m = decode_frame(encode_frame(m))
-        if not ev["host"]:
+        if not host:
             pending.append(m)
             continue
         now = clock(m.sec_mark)

@@ -48,18 +48,24 @@ class SafetyApps:
         c = self.config
         self.monitors = {a: WarningMonitor(app=a, on_ticks=c.on_ticks, off_time=c.off_time)
                          for a in c.enabled}
+        self._fcw, self._eebl = "fcw" in c.enabled, "eebl" in c.enabled
+        self._side = "bsw" in c.enabled or "lcw" in c.enabled
 
     def __call__(self, snap) -> tuple[list[AppWarning], list[AppEvent]]:
         c = self.config
         found: list[AppWarning] = []
-        if "fcw" in c.enabled:
+        if self._fcw:
             found += forward_collision(snap, c.fcw)
-        if "eebl" in c.enabled:
+        if self._eebl:
             found += eebl(snap, c.eebl)
-        if "bsw" in c.enabled or "lcw" in c.enabled:
-            found += [w for w in blind_spot(snap, c.bsw) if w.app in c.enabled]
+        if self._side:
+            side = blind_spot(snap, c.bsw)
+            if side:
+                found += [w for w in side if w.app in c.enabled]
         events: list[AppEvent] = []
         for app, mon in self.monitors.items():
+            if not (found or mon.tracking):  # the usual tick: nothing to update or close
+                continue
             on = {w.rv_id for w in found if w.app == app}
             for rv_id in sorted(on):
                 events += mon.update(snap.t, rv_id, True)

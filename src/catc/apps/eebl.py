@@ -38,6 +38,8 @@ class EeblConfig:
 
 def eebl(snap, config: EeblConfig = EeblConfig()) -> list[AppWarning]:
     """EEBL warning conditions at this tick (one per RV that meets them)."""
+    if not snap.hard_braking.any():  # the usual tick: nothing else to look at
+        return []
     z = snap.zone
     mask = (z.ahead & (z.direction == _ONGOING) & (z.lateral >= _LEFT) & (z.lateral <= _RIGHT)
             & (z.s <= config.range_m) & snap.hard_braking)

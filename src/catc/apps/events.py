@@ -92,6 +92,11 @@ class WarningMonitor:
             return [ev]
         return []
 
+    @property
+    def tracking(self) -> bool:
+        """Some RV has state: an open event, or warning ticks counting towards one."""
+        return bool(self._rv)
+
     def open_events(self) -> dict[object, float]:
         """rv_id -> t_start of the events still open (e.g. at the end of a capture)."""
         return {k: s.active_start for k, s in self._rv.items() if s.active_start is not None}
@@ -103,6 +108,8 @@ class WarningMonitor:
         see its open event end after ``off_time``.
         """
         out: list[AppEvent] = []
+        if not self._rv:  # the usual tick: no RV has state
+            return out
         for rv_id in [k for k in self._rv if k not in present]:
             out += self.update(t, rv_id, False)
             if self._rv.get(rv_id) == _RvState():

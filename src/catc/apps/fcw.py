@@ -245,6 +245,10 @@ def should_warn(range_m: float, fcw_range: FcwRange) -> bool:
 
 _CENTRE = 2  # catc.classify.LATERAL_CODES
 _ONGOING = 0  # catc.classify.DIRECTION_CODES
+#: ``_CENTRE_ONGOING[lateral, direction]``: On Centre and Ongoing (one lookup per tick
+#: instead of two comparisons and a logical and).
+_CENTRE_ONGOING = np.zeros((5, 3), dtype=bool)
+_CENTRE_ONGOING[_CENTRE, _ONGOING] = True
 
 
 def forward_collision(snap, config: FcwConfig = FcwConfig()) -> list[AppWarning]:
@@ -258,15 +262,15 @@ def forward_collision(snap, config: FcwConfig = FcwConfig()) -> list[AppWarning]
     acceleration is its last BSM's.  Returns one warning or none.
     """
     z = snap.zone
-    mask = z.ahead & (z.lateral == _CENTRE) & (z.direction == _ONGOING)
-    if not mask.any():
+    cand = (z.ahead & _CENTRE_ONGOING[z.lateral, z.direction]).nonzero()[0]
+    if not len(cand):
         return []
-    cand = np.flatnonzero(mask)
-    i = int(cand[np.argmin(z.s[cand])])
+    i = int(cand[z.s[cand].argmin()]) if len(cand) > 1 else int(cand[0])
     host = snap.host
-    gap = max(0.0, float(z.s[i]) - 0.5 * (host.length + float(snap.length[i])))
-    v_rv = max(0.0, float(snap.speed[i]) * math.cos(math.radians(float(z.heading_diff_deg[i]))))
-    r = warning_range(max(host.speed, 0.0), host.accel, v_rv, float(snap.accel[i]), config)
+    # .item(i): the entry as a Python float, as float(a[i]) gives it
+    gap = max(0.0, z.s.item(i) - 0.5 * (host.length + snap.length.item(i)))
+    v_rv = max(0.0, snap.speed.item(i) * math.cos(math.radians(z.heading_diff_deg.item(i))))
+    r = warning_range(max(host.speed, 0.0), host.accel, v_rv, snap.accel.item(i), config)
     if not should_warn(gap, r):
         return []
     return [AppWarning("fcw", int(snap.ids[i]), gap, r.r_w)]

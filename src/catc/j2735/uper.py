@@ -397,7 +397,7 @@ def _decode_vse(data: bytes) -> dict:
 
 def _encode_vse(m: BSM) -> bytes | None:
     parts = (m.events, m.path_history, m.path_prediction, m.lights)
-    if all(p is None for p in parts):
+    if parts == (None, None, None, None):  # no Part II (most BSMs): no generator to run
         return None
     w = BitWriter()
     w.write(sum(1 << (3 - i) for i, p in enumerate(parts) if p is not None), 5)

@@ -6,7 +6,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 SHARED ?= ../shared/data
 
-.PHONY: demo test lint bench bank clean install
+.PHONY: demo test lint bench bank report clean install
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -32,6 +32,11 @@ test: $(VENV)/.installed-test
 
 bench: $(VENV)/.installed
 	$(BIN)/python bench/codec.py
+
+# The paper's experiments on the shared real data as one report (out/report/report.html).
+report: $(VENV)/.installed-test
+	OPENBLAS_NUM_THREADS=1 $(BIN)/captures report --data $(SHARED) --workers 2 \
+	  --live 50@10,90@10 --out out/report
 
 # Re-create the default HGP kernel bank shipped in the package from ../shared/data.
 bank: $(VENV)/.installed

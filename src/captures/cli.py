@@ -14,7 +14,7 @@ import sys
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-from captures import decode, evaluate, replay, score, train_bank
+from captures import decode, evaluate, plot, replay, report, score, sweep, train_bank
 from catc.cliargs import dispatch, make_parser
 
 DESCRIPTION = """\
@@ -23,19 +23,23 @@ Capture-and-score post analysis for the V2X testbench.
   decode       print the BSMs in a file as JSON lines (raw UPER, hex, IEEE 1609.2,
                ODE OBU .bin logs, ODE JSON/XML records)
   evaluate     PTE95 of each predictor on real trips under seeded packet loss
+  plot         bird's-eye views, PTE / messages / warnings timeline and GIF of a capture
   replay       run the CA-TC and the safety apps offline, print their warning events
+  report       the paper's experiments on real data as one HTML/Markdown report
   score        PTE, FCW accuracy and counts of an `rve run` + `obu run` capture
-  train-bank   train the HGP kernel bank on real trips (Algorithm 1)
-
-Sweeps and plots arrive with the captures issue."""
+  sweep        PER x rate x predictor x dataset: the paper's tables, on real data
+  train-bank   train the HGP kernel bank on real trips (Algorithm 1)"""
 
 
 def main(argv: list[str] | None = None) -> int:
     parser, sub = make_parser("captures", DESCRIPTION)
     decode.register(sub)
     evaluate.register(sub)
+    plot.register(sub)
     replay.register(sub)
+    report.register(sub)
     score.register(sub)
+    sweep.register(sub)
     train_bank.register(sub)
     return dispatch(parser, argv)
 

@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
-import subprocess
 import sys
 import time
 from collections import Counter
@@ -24,13 +23,13 @@ from pathlib import Path
 import numpy as np
 
 from captures.decode import decode_any, is_message_frame
+from captures.live import LiveError, run_daemons
 from catc.bsm import BSM
 from catc.errors import DecodeError
 from catc.geo import EnuFrame
 from catc.j2735 import encode_bsm, encode_frame
 from catc.j2735.ieee1609 import unwrap, wrap_unsecured
 from catc.j2735.sniff import extract_frames
-from hil.transport.udp import free_ports
 
 
 def _reencodes(frame: bytes, bsm: BSM) -> bool:
@@ -141,28 +140,11 @@ def hil_run(out: Path, per: float, speed: float, predictor: str) -> int:
           f"{per:g} %, {predictor}, {speed:g}x speed (capture in {out})")
     if out.exists():
         shutil.rmtree(out)
-    ports = free_ports()
-    py = sys.executable
-    obu = subprocess.Popen(
-        [py, "-m", "obu.cli", "run", "--listen", f"127.0.0.1:{ports[0]}", "--host-listen",
-         f"127.0.0.1:{ports[1]}", "--predictor", predictor, "--capture", str(out),
-         "--idle-exit", "2", "--no-progress"], stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE, text=True)
     try:
-        time.sleep(1.0)
-        if obu.poll() is not None:
-            print("   the OBU did not start: " + obu.communicate()[1].strip())
-            return 1
-        rve = subprocess.run(
-            [py, "-m", "rve.cli", "run", "--per", str(per), "--speed", str(speed), "--seed",
-             "1", "--to", f"127.0.0.1:{ports[0]}", "--host-to", f"127.0.0.1:{ports[1]}",
-             "--capture", str(out)], stdout=subprocess.PIPE, text=True, timeout=600)
-        warnings, err = obu.communicate(timeout=120)
-    finally:
-        if obu.poll() is None:
-            obu.kill()
-    if rve.returncode or obu.returncode:
-        print(f"   failed: rve exit {rve.returncode}, obu exit {obu.returncode}: {err.strip()}")
+        warnings = run_daemons(out, ["--per", str(per), "--speed", str(speed), "--seed", "1"],
+                               ["--predictor", predictor])
+    except LiveError as err:
+        print(f"   failed: {err}")
         return 1
     result = score(out)
     print("   " + table(result).replace("\n", "\n   "))
@@ -174,6 +156,13 @@ def hil_run(out: Path, per: float, speed: float, predictor: str) -> int:
         if e["app"] in ("fcw", "eebl"):
             print(f"     t = {e['t']:5.1f} s  {e['app'].upper():4} {e['kind']:<5} on "
                   f"{by_id.get(e['rv'], e['rv'])}")
+    from captures.plot import auto_times, load_run, stills
+
+    the_run = load_run(out)
+    pictures = stills(the_run, auto_times(the_run, most=2), out / "plots")
+    print("   pictures of the run (bird's-eye views at the FCW, PTE / messages / warnings):")
+    for path in pictures:
+        print(f"     {path}")
     return 0
 
 
@@ -203,6 +192,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"3. skipped: no real vectors at {vectors} (pass --data DIR)")
     quantization_check()
     print(f"\nTry: .venv/bin/captures score {args.out}")
+    print(f"     .venv/bin/captures plot {args.out} --gif")
     print("     .venv/bin/captures decode ../shared/data/jpo-ode-bsm-vectors/rxMsg_BSM.bin")
     print("     .venv/bin/captures replay --dataset nyc:" + str(event))
     print("     .venv/bin/python bench/codec.py; .venv/bin/python bench/step.py")

@@ -86,23 +86,37 @@ def _ground_truth_fcw(rve_cfg: dict) -> dict[float, bool]:
             for snap in simulate(the_plan, cam)}
 
 
+def read_capture(directory: Path, rx: bool = True) -> dict:
+    """The files of an RVE + OBU capture directory, checked: ``rve_cfg, obu_cfg, truth,
+    schedule, ticks, tracks, events`` and (with ``rx``) ``rx``."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise ScoreError(f"{directory}: not a directory")
+    out = {"rve_cfg": _json(directory / "rve.config.json"),
+           "obu_cfg": _json(directory / "obu.config.json"),
+           "truth": _lines(directory / "rve.truth.jsonl"),
+           "schedule": _lines(directory / "rve.schedule.jsonl"),
+           "ticks": _lines(directory / "obu.ticks.jsonl"),
+           "tracks": _lines(directory / "obu.tracks.jsonl"),
+           "events": _lines(directory / "obu.events.jsonl")
+           if (directory / "obu.events.jsonl").is_file() else []}
+    if rx:
+        out["rx"] = _lines(directory / "obu.rx.jsonl")
+    if not out["ticks"]:
+        raise ScoreError(f"{directory}: the OBU recorded no tick")
+    if out["obu_cfg"].get("origin") is None:
+        raise ScoreError(f"{directory}: obu.config.json has no ENU origin")
+    return out
+
+
 def score(directory: Path) -> dict:
     """Every score of a capture directory (see the module docstring)."""
     from catc.geo import EnuFrame
 
-    rve_cfg = _json(directory / "rve.config.json")
-    obu_cfg = _json(directory / "obu.config.json")
-    truth = _lines(directory / "rve.truth.jsonl")
-    schedule = _lines(directory / "rve.schedule.jsonl")
-    ticks = _lines(directory / "obu.ticks.jsonl")
-    tracks = _lines(directory / "obu.tracks.jsonl")
-    rx = _lines(directory / "obu.rx.jsonl")
-    events = _lines(directory / "obu.events.jsonl") \
-        if (directory / "obu.events.jsonl").is_file() else []
-    if not ticks:
-        raise ScoreError(f"{directory}: the OBU recorded no tick")
-    if obu_cfg.get("origin") is None:
-        raise ScoreError(f"{directory}: obu.config.json has no ENU origin")
+    cap = read_capture(directory)
+    rve_cfg, obu_cfg, truth, schedule = (cap["rve_cfg"], cap["obu_cfg"], cap["truth"],
+                                         cap["schedule"])
+    ticks, tracks, rx, events = cap["ticks"], cap["tracks"], cap["rx"], cap["events"]
     frame = EnuFrame(*obu_cfg["origin"])
     names = {tid: v for v, tid in rve_cfg["vehicles"].items()}
 

@@ -156,6 +156,8 @@ def _track_rows(snap: MapSnapshot, sec_mark: int) -> list[dict]:
             "fresh": bool(snap.fresh[i]), "lane": int(snap.lane[i]),
             "zone": [bool(z.ahead[i]), int(z.lateral[i]), int(z.direction[i])],
             "s": round(float(z.s[i]), 3), "d": round(float(z.d[i]), 3),
+            "predicted_x": round(float(snap.pred_x[i]), 7),
+            "predicted_y": round(float(snap.pred_y[i]), 7),
             "predicted_zone": [bool(pz.ahead[i]), int(pz.lateral[i]), int(pz.direction[i])]})
     return rows
 

@@ -140,18 +140,29 @@ def cluster(bank: KernelBank, size: int, seed: int = 0) -> KernelBank:
 
 
 def persistency(tracks: Sequence[Track], bank: KernelBank,
-                cfg: TrainConfig = TrainConfig()) -> dict[str, float]:
+                cfg: TrainConfig = TrainConfig(), trace: dict | None = None,
+                ) -> dict[str, float]:
     """Walk ``tracks`` with a fixed ``bank`` (no training) and measure how it fares.
 
     Returns the mean model persistency (s) and the new-kernel rate: the fraction of
     switches, and the count per minute of driving, at which no bank pair met PTE_th
     (where online HGP would fit a new model).  These are the paper's H2 measures.
+
+    ``trace``, when given, is filled with when things happened, on the driving clock the
+    per-minute rate uses (the walked tracks laid end to end):  ``trace["switches"]``, one
+    dict per switch: ``track`` (index into ``tracks``), ``vehicle``, ``t_trip_s`` (since
+    the track's first sample), ``driven_s`` (since the first walked track's first sample)
+    and ``new`` (no bank pair met PTE_th: a new-kernel event); ``trace["tracks"]``, one
+    dict per walked track: ``track``, ``vehicle``, ``start_s`` and ``driven_s`` (its
+    length, s).  The returned figures are the same with or without it.
     """
     n_ahead = round(cfg.horizon_s / DT)
     mp_s: list[float] = []
     misses = switches = 0
     driven = 0.0
-    for tr in tracks:
+    if trace is not None:
+        trace.update(switches=[], tracks=[])
+    for k, tr in enumerate(tracks):
         t, s, h, x, y, a, w = series(tr)
         current = None
         run_start = 0.0
@@ -166,10 +177,18 @@ def persistency(tracks: Sequence[Track], bank: KernelBank,
             if current is not None:
                 switches += 1
                 mp_s.append(float(t[c] - run_start))
-                misses += ptes[best] >= cfg.pte_th
+                new = bool(ptes[best] >= cfg.pte_th)
+                misses += new
+                if trace is not None:
+                    trace["switches"].append({
+                        "track": k, "vehicle": tr.vehicle_id, "t_trip_s": float(t[c] - t[0]),
+                        "driven_s": driven + float(t[c] - t[0]), "new": new})
             current, run_start = best, t[c]
         if current is not None:
             mp_s.append(float(t[-1 - n_ahead] - run_start))
+            if trace is not None:
+                trace["tracks"].append({"track": k, "vehicle": tr.vehicle_id, "start_s": driven,
+                                        "driven_s": float(t[-1] - t[0])})
             driven += float(t[-1] - t[0])
     return {"mp_mean_s": float(np.mean(mp_s)) if mp_s else float("nan"),
             "switches": switches, "new_kernel_events": misses,

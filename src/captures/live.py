@@ -1,0 +1,122 @@
+"""Live spot checks: a sweep cell through the real daemons, next to the offline simulator.
+
+``obu run`` and ``rve run`` start as two processes talking UDP on 127.0.0.1 (ports from
+the OS), the RVE replays one trip at a chosen PER and rate, and ``captures score`` scores
+the shared capture.  The same trip, cell, seed and predictor go through the offline
+CA-TC (:func:`catc.sweep.cam_run`, values through UPER as on the wire).  With zero
+latency the two must agree (the OBU's tick rule is the simulator's); a difference beyond
+what wall-clock scheduling can explain is a bug, and the report shows both.
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+from typing import TextIO
+
+import numpy as np
+
+from catc.mobility import MobilityTable
+from catc.sweep import Cell, cam_run
+from hil.transport.udp import free_ports
+
+
+class LiveError(RuntimeError):
+    """A daemon failed; ``str()`` is one line with its exit status and last error line."""
+
+
+def run_daemons(capture: Path, rve_flags: list[str], obu_flags: list[str],
+                timeout: float = 600.0) -> str:
+    """Start ``obu run`` (listening on two free loopback ports), then ``rve run`` sending
+    to them, both writing into ``capture``; wait for both.  Returns the OBU's stdout (its
+    warning events as JSON lines)."""
+    import time
+
+    ports = free_ports()
+    py = sys.executable
+    obu = subprocess.Popen(
+        [py, "-m", "obu.cli", "run", "--listen", f"127.0.0.1:{ports[0]}", "--host-listen",
+         f"127.0.0.1:{ports[1]}", "--capture", str(capture), "--idle-exit", "2",
+         "--no-progress", *obu_flags], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True)
+    try:
+        time.sleep(1.0)
+        if obu.poll() is not None:
+            raise LiveError("the OBU did not start: " + obu.communicate()[1].strip())
+        rve = subprocess.run(
+            [py, "-m", "rve.cli", "run", "--to", f"127.0.0.1:{ports[0]}", "--host-to",
+             f"127.0.0.1:{ports[1]}", "--capture", str(capture), "--no-progress",
+             *rve_flags], capture_output=True, text=True,
+            timeout=timeout)
+        out, err = obu.communicate(timeout=120)
+    finally:
+        if obu.poll() is None:
+            obu.kill()
+            obu.wait()
+    if rve.returncode or obu.returncode:
+        last = (rve.stderr.strip() or err.strip()).splitlines()[-1:] or [""]
+        raise LiveError(f"rve exit {rve.returncode}, obu exit {obu.returncode}: {last[0]}")
+    return out
+
+
+def live_checks(spec: str, table: MobilityTable, predictor: str, cells: list[Cell], *,
+                seed: int = 0, speed: float = 8.0, keep: Path | None = None,
+                progress: TextIO | None = None) -> list[dict]:
+    """Each cell live and offline on ``table`` (a trip of dataset ``spec``); one dict a
+    cell with both scores and their differences."""
+    from captures.score import score
+
+    out = []
+    root = Path(keep) if keep else Path(tempfile.mkdtemp(prefix="catc-live-"))
+    try:
+        for cell in cells:
+            cap = root / f"per{100 * cell.per:g}_rate{cell.rate_hz:g}"
+            if cap.exists():
+                shutil.rmtree(cap)
+            if progress:
+                print(f"live: {cell.label}, {predictor}, trip {table.name} ...", file=progress,
+                      flush=True)
+            run_daemons(cap, ["--dataset", spec, "--trip", table.name, "--per",
+                              f"{100 * cell.per:g}", "--rate", f"{cell.rate_hz:g}",
+                              "--burst", f"{cell.burst:g}", "--seed", str(seed), "--speed",
+                              f"{speed:g}"], ["--predictor", predictor])
+            live = score(cap)
+            off = cam_run(table, predictor, cell, seed, wire=True)
+            pte95 = float(np.percentile(off.pte, 95)) if len(off.pte) else None
+            total = sum(off.fcw.values())
+            acc = (off.fcw["tp"] + off.fcw["tn"]) / total if total else None
+            row = {"trip": table.name, "predictor": predictor, "per": 100 * cell.per,
+                   "rate": cell.rate_hz, "seed": seed,
+                   "live": {"pte95_m": live["pte95_m"], "fcw_accuracy": live["fcw_accuracy"],
+                            "fcw": live["fcw"], "sent": live["sent"],
+                            "dropped": live["dropped"], "received": live["received"],
+                            "ticks": live["ticks"]},
+                   "offline": {"pte95_m": None if pte95 is None else round(pte95, 4),
+                               "fcw_accuracy": None if acc is None else round(acc, 4),
+                               "fcw": off.fcw, "sent": off.sent, "dropped": off.dropped,
+                               "ticks": off.ticks}}
+            row["agree"] = agreement(row["live"], row["offline"])
+            if keep is not None:
+                row["capture"] = str(cap)
+            out.append(row)
+    finally:
+        if keep is None:
+            shutil.rmtree(root, ignore_errors=True)
+    return out
+
+
+def agreement(live: dict, offline: dict, pte_tol_m: float = 0.01,
+              fcw_tol: float = 0.005) -> dict:
+    """Differences live − offline and whether they are within tolerance: PTE95 within
+    1 cm, FCW accuracy within 0.5 %, the channel's counts equal."""
+    d_pte = (None if live["pte95_m"] is None or offline["pte95_m"] is None
+             else round(live["pte95_m"] - offline["pte95_m"], 4))
+    d_fcw = (None if live["fcw_accuracy"] is None or offline["fcw_accuracy"] is None
+             else round(live["fcw_accuracy"] - offline["fcw_accuracy"], 4))
+    counts = live["sent"] == offline["sent"] and live["dropped"] == offline["dropped"]
+    ok = counts and d_pte is not None and abs(d_pte) <= pte_tol_m \
+        and (d_fcw is None or abs(d_fcw) <= fcw_tol)
+    return {"pte95_m": d_pte, "fcw_accuracy": d_fcw, "counts_equal": counts, "ok": bool(ok)}

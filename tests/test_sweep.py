@@ -1,0 +1,225 @@
+"""`captures sweep`: the grid, the engines (in process, local processes, Dask), the live
+spot checks through the real daemons, and the figures, on the shared real data."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from functools import partial
+
+import numpy as np
+import pytest
+
+from captures.datasets import load
+from captures.sweep import load_datasets, summary, sweep
+from catc.evaluate import evaluate
+from catc.predict import make_predictor
+from catc.sweep import (
+    Cell,
+    cam_run,
+    cells,
+    fcw_scene,
+    lockstep_errors,
+    pool,
+    run_cell,
+    track_errors,
+    truth_fcw,
+)
+from tests.conftest import shared_path
+
+
+@pytest.fixture(scope="module")
+def ngsim():
+    return load(f"ngsim:{shared_path('ngsim-i80-pairs')}")
+
+
+def test_paper_grid_is_per_at_top_rate_plus_rate_at_lowest_per():
+    grid = cells([0, 0.5, 0.9], [10, 5, 1])
+    assert grid == [Cell(0.0, 1.0), Cell(0.0, 5.0), Cell(0.0, 10.0), Cell(0.5, 10.0),
+                    Cell(0.9, 10.0)]
+    assert len(cells([0, 0.5, 0.9], [10, 5, 1], grid="cross")) == 9
+    for bad in ([1.0], [-0.1]):
+        with pytest.raises(ValueError, match="PER"):
+            cells(bad, [10])
+    with pytest.raises(ValueError, match="rate"):
+        cells([0], [20])
+
+
+def test_track_engine_at_10_hz_is_the_bernoulli_evaluation(ngsim):
+    """The sweep's channel (rate subsampling, then loss) at 10 Hz draws exactly the losses
+    of `captures evaluate`, so both give the same PTE samples."""
+    tabs = ngsim[:4]
+    for name in ("ca", "hgp"):
+        ref = evaluate(tabs, {name: partial(make_predictor, name)}, [0.6], [3])[0]
+        rows = pool("ngsim", [run_cell(t, name, Cell(0.6), 3, fcw=False) for t in tabs])
+        assert rows.n_ticks == ref.n_ticks
+        assert rows.pte95_m == pytest.approx(ref.pte95_m, abs=1e-4)
+        # all trips' vehicles in lockstep, HGP forecasts stacked: the same samples
+        errors, _, _ = lockstep_errors([(f"{t.name}/{v}", tr) for t in tabs
+                                        for v, tr in t.tracks.items()], name, Cell(0.6), 3)
+        one_by_one = [track_errors(t, name, Cell(0.6), 3)[0] for t in tabs]
+        np.testing.assert_allclose(np.concatenate(errors), np.concatenate(one_by_one),
+                                   atol=1e-5)
+
+
+def test_hold_error_at_half_rate_is_the_distance_since_the_last_message(ngsim):
+    """5 Hz, no loss: every other tick has no message; hold's error there is exactly the
+    distance the vehicle moved in 0.1 s, and 0 on the ticks with a message."""
+    t = ngsim[0]
+    e, sent, dropped = track_errors(t, "hold", Cell(0.0, 5.0), 0)
+    expect = []
+    for tr in t.tracks.values():
+        step = np.hypot(np.diff(tr.x), np.diff(tr.y))
+        ex = np.zeros(len(tr))
+        ex[1::2] = step[0::2]
+        expect.append(ex)
+    np.testing.assert_allclose(e, np.concatenate(expect).astype(np.float32), atol=1e-5)
+    assert dropped == 0 and sent == sum((len(tr) + 1) // 2 for tr in t.tracks.values())
+
+
+def test_fcw_is_exact_on_the_true_states_and_degrades_with_loss(ngsim):
+    """At PER 0 and 10 Hz every predictor reproduces the truth's FCW (accuracy 1 with real
+    warnings in it); at PER 90 % the BSM-dependent baseline (hold) gets ticks wrong."""
+    tabs = [t for t in ngsim[:12] if truth_fcw(fcw_scene(t)).any()][:3]
+    assert tabs, "no FCW in the first NGSIM pairs"
+    for name in ("hold", "hgp"):
+        r = pool("ngsim", [run_cell(t, name, Cell(0.0), 0) for t in tabs])
+        assert r.fcw_accuracy == 1.0 and r.fcw["tp"] > 0 and r.fcw["fp"] == r.fcw["fn"] == 0
+    bad = pool("ngsim", [run_cell(t, "hold", Cell(0.9), 0) for t in tabs])
+    assert bad.fcw_accuracy < 1.0 and bad.fcw["fp"] + bad.fcw["fn"] > 0
+
+
+def test_cam_engine_scores_like_the_track_engine_on_the_same_vehicle(ngsim):
+    """The CA-TC's PTE of the leader (as the OBU sees it) against the track engine's PTE of
+    the same vehicle with the same losses: the same to J2735 quantisation."""
+    t = ngsim[1]
+    lead = next(iter(t.tracks))
+    only = fcw_scene(t)
+    from dataclasses import replace
+
+    lead_only = replace(t, tracks={lead: t.tracks[lead]})
+    e_track, *_ = track_errors(lead_only, "ca", Cell(0.5), 7)
+    e_cam = cam_run(only, "ca", Cell(0.5), 7, wire=True).pte
+    assert abs(len(e_cam) - len(e_track)) <= 1
+    assert abs(np.percentile(e_cam, 95) - np.percentile(e_track, 95)) < 0.02
+
+
+def _rows(**kw):
+    datasets, _ = load_datasets([f"ngsim:{shared_path('ngsim-i80-pairs')}"], max_trips=3)
+    return [r.as_dict() for r in sweep(datasets, ["hold", "ca", "hgp"],
+                                       cells([0, 0.7], [10, 3]), [0, 1],
+                                       fcw_predictors=["ca"], **kw)]
+
+
+@pytest.mark.slow
+def test_rows_are_the_same_in_process_in_local_processes_and_on_dask():
+    distributed = pytest.importorskip("distributed")
+    one = _rows(workers=1)
+    assert _rows(workers=1) == one  # reproducible
+    assert _rows(workers=2) == one
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster:
+        assert _rows(dask=cluster.scheduler_address) == one
+    by = {(r["predictor"], r["per"], r["rate"]): r for r in one}
+    assert by["ca", 70.0, 10.0]["fcw_accuracy"] is not None
+    assert by["hgp", 70.0, 10.0]["fcw_accuracy"] is None  # not asked for
+    assert by["hold", 0.0, 10.0]["pte95_m"] == 0.0
+    assert by["hold", 70.0, 10.0]["pte95_m"] > by["hgp", 70.0, 10.0]["pte95_m"]
+    assert by["hold", 0.0, 3.0]["pte95_m"] > 0.0
+    for r in one:
+        ex = list(r["exceedances"].values())
+        assert ex == sorted(ex, reverse=True) and ex[0] <= r["n_ticks"]
+    assert "PER [%]" in summary(one) and "Rate [Hz]" in summary(one)
+
+
+def _cli(*args, timeout=600):
+    return subprocess.run([sys.executable, "-m", "captures.cli", *args], capture_output=True,
+                          text=True, timeout=timeout)
+
+
+def test_cli_sweep_writes_rows_with_version_and_params_and_figures(tmp_path):
+    data = shared_path("ngsim-i80-pairs")
+    out = tmp_path / "rows.json"
+    r = _cli("sweep", "--dataset", f"ngsim:{data}", "--max-trips", "2", "--per", "0,50,90",
+             "--rate", "10,5", "--predictors", "hold,ca", "--workers", "1", "--json", str(out),
+             "--plots", str(tmp_path / "fig"))
+    assert r.returncode == 0, r.stderr
+    assert "PTE95 [m] against PER" in r.stdout and "ca/hgp" not in r.stdout
+    doc = json.loads(out.read_text())
+    assert len(doc["rows"]) == 2 * 4
+    assert doc["params"]["per"] == [0, 50, 90] and doc["params"]["seeds"] == 1
+    assert doc["version"]["catc-hil"] and doc["rows"][0]["version"]
+    ds = doc["datasets"]["ngsim-i80-pairs"]
+    assert len(ds["trips"]) == 2 and all(len(h) == 64 for h in ds["files"].values())
+    keys = {"dataset", "predictor", "per", "rate", "pte95_m", "fcw_accuracy", "n_ticks"}
+    assert keys <= set(doc["rows"][0])
+    from PIL import Image
+
+    for name in ("ngsim-i80-pairs_h3.png", "ngsim-i80-pairs_exceedance.png"):
+        with Image.open(tmp_path / "fig" / name) as im:
+            assert im.size[0] > 800 and im.size[1] > 300
+
+
+@pytest.mark.parametrize("args, message", [
+    ([], "--dataset"),
+    (["--dataset", "nowhere/at/all"], "no such file"),
+    (["--predictors", "magic"], "unknown predictor"),
+    (["--per", "100"], "PER"),
+    (["--rate", "0"], "rate"),
+    (["--live", "fifty"], "PER@RATE"),
+])
+def test_cli_sweep_bad_flags_fail_in_one_line(args, message):
+    data = ["--dataset", f"ngsim:{shared_path('ngsim-i80-pairs')}"] \
+        if "--dataset" not in args and args else []
+    r = _cli("sweep", *data, *args, "--max-trips", "1", "--workers", "1", timeout=120)
+    assert r.returncode == 2
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0] and lines[0].startswith("captures sweep:")
+
+
+@pytest.mark.slow
+def test_live_cells_through_the_daemons_agree_with_the_offline_simulator(tmp_path):
+    """rve and obu as separate processes over UDP on 127.0.0.1, then `captures score`,
+    against the offline CA-TC on the same trip, cell, seed and predictor."""
+    data = shared_path("ngsim-i80-pairs")
+    out = tmp_path / "rows.json"
+    r = _cli("sweep", "--dataset", f"ngsim:{data}", "--max-trips", "1", "--per", "0,60",
+             "--rate", "10", "--predictors", "hgp", "--workers", "1", "--live", "60@10,0@4",
+             "--json", str(out))
+    assert r.returncode == 0, r.stderr
+    live = json.loads(out.read_text())["live"]
+    assert [(c["per"], c["rate"]) for c in live] == [(60.0, 10.0), (0.0, 4.0)]
+    for c in live:
+        assert c["agree"]["ok"], c
+        assert c["live"]["dropped"] > 0 if c["per"] else c["live"]["dropped"] == 0
+        assert c["live"]["received"] == c["live"]["sent"]
+
+
+def test_report_from_a_sweep_is_self_contained_and_states_the_verdict(tmp_path):
+    data = shared_path("ngsim-i80-pairs")
+    rows = tmp_path / "rows.json"
+    r = _cli("sweep", "--dataset", f"ngsim:{data}", "--max-trips", "2", "--per", "0,50,90",
+             "--rate", "10,5", "--predictors", "ca,kf,hgp", "--fcw-predictors", "hgp",
+             "--workers", "1", "--json", str(rows))
+    assert r.returncode == 0, r.stderr
+    out = tmp_path / "report"
+    r = _cli("report", "--sweep", str(rows), "--no-hgp", "--out", str(out))
+    assert r.returncode == 0, r.stderr
+    md = (out / "report.md").read_text()
+    doc = json.loads(rows.read_text())
+    by = {(x["predictor"], x["per"], x["rate"]): x for x in doc["rows"]}
+    # the H3 row as measured, and the paper's peer table next to it
+    assert "| kf | 0.000 | " + f"{by['kf', 50.0, 10.0]['pte95_m']:.3f}" in md
+    assert "| HGP | 0.000 | 0.047 |" in md
+    ratio = by["kf", 90.0, 10.0]["pte95_m"] / by["hgp", 90.0, 10.0]["pte95_m"]
+    word = "HGP has the lower PTE95 at" if ratio > 1 else "**it does not** at"
+    assert f"×{ratio:.2f}" in md and word in md
+    assert "The paper's target at PER 90 %" in md
+    for ref in ("figures/ngsim-i80-pairs_h3.png", "figures/ngsim-i80-pairs_exceedance.png"):
+        assert f"]({ref})" in md and (out / ref).is_file()
+    page = (out / "report.html").read_text()
+    assert page.count("data:image/png;base64,") == 2 and "src='figures" not in page
+    assert doc["datasets"]["ngsim-i80-pairs"]["files"]  # provenance carried over
+    bad = _cli("report", "--sweep", str(tmp_path / "none.json"), "--out", str(out))
+    assert bad.returncode == 2 and bad.stderr.startswith("captures report:")

@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from captures.score import ScoreError, read_capture
+from captures.score import ScoreError, clock_offset, read_capture, truth_in_frame
 
 __all__ = ["Run", "animate", "auto_times", "birdseye", "load_run", "register", "run",
            "timeline"]
@@ -152,34 +152,13 @@ class Run:
 
 # --- loading ----------------------------------------------------------------------------------
 
-def _offset(truth_rows: list[dict], first_tick: dict, directory: Path) -> float:
-    """OBU clock - dataset time, as :func:`captures.score.score` finds it."""
-    matches = [r["t"] for r in truth_rows
-               if r["host"] and round(r["t"] * 1000) % 60_000 == first_tick["sec_mark"]]
-    if not matches:
-        raise ScoreError(f"{directory}: the OBU's first tick (secMark "
-                         f"{first_tick['sec_mark']}) matches no host sample of the RVE's "
-                         "truth")
-    return first_tick["t"] - matches[0]
-
-
 def _truth(truth_rows: list[dict], origin, offset: float, names: dict[str, str]
            ) -> dict[str, Truth]:
-    from catc.geo import EnuFrame
-
-    frame = EnuFrame(*origin)
-    by_vehicle: dict[str, list[dict]] = defaultdict(list)
-    for r in truth_rows:
-        by_vehicle[r["id"]].append(r)
     out = {}
-    for tid, rows in by_vehicle.items():
-        t = np.array([r["t"] for r in rows])
-        x, y, _ = frame.to_enu(np.array([r["lat"] for r in rows]),
-                               np.array([r["lon"] for r in rows]), 0.0)
+    for tid, (rows, t, x, y) in truth_in_frame(truth_rows, origin).items():
         heading = np.degrees(np.unwrap(np.radians([r["heading"] for r in rows])))
-        out[tid] = Truth(names.get(tid, rows[0].get("vehicle", tid)), t + offset,
-                         np.atleast_1d(x), np.atleast_1d(y), heading,
-                         np.array([r["speed"] for r in rows]),
+        out[tid] = Truth(names.get(tid, rows[0].get("vehicle", tid)), t + offset, x, y,
+                         heading, np.array([r["speed"] for r in rows]),
                          np.array([r.get("yaw_rate", 0.0) for r in rows]))
     return out
 
@@ -231,7 +210,7 @@ def load_run(directory: Path | str) -> Run:
     schedule, events = cap["schedule"], cap["events"]
     names = {tid: v for v, tid in rve_cfg["vehicles"].items()}
     host_id = rve_cfg["vehicles"].get(rve_cfg.get("host"), "")
-    offset = _offset(truth_rows, ticks[0], directory)
+    offset = clock_offset(truth_rows, ticks[0], directory)
     truth = _truth(truth_rows, obu_cfg["origin"], offset, names)
     if not host_id:
         host_id = next((r["id"] for r in truth_rows if r["host"]), "")

@@ -109,36 +109,47 @@ def read_capture(directory: Path, rx: bool = True) -> dict:
     return out
 
 
-def score(directory: Path) -> dict:
-    """Every score of a capture directory (see the module docstring)."""
+def clock_offset(truth: list[dict], first_tick: dict, directory: Path) -> float:
+    """OBU clock − dataset time (a whole number of minutes): the host truth sample whose
+    secMark is the OBU's first tick's."""
+    matches = [r["t"] for r in truth
+               if r["host"] and round(r["t"] * 1000) % 60_000 == first_tick["sec_mark"]]
+    if not matches:
+        raise ScoreError(f"{directory}: the OBU's first tick (secMark "
+                         f"{first_tick['sec_mark']}) matches no host sample of the RVE's "
+                         "truth")
+    return first_tick["t"] - matches[0]
+
+
+def truth_in_frame(truth: list[dict], origin) -> dict[str, tuple[list[dict], np.ndarray,
+                                                                    np.ndarray, np.ndarray]]:
+    """Truth rows per vehicle id with their times and positions in the OBU's ENU frame:
+    ``id -> (rows, t, x, y)``."""
     from catc.geo import EnuFrame
 
+    frame = EnuFrame(*origin)
+    by_vehicle: dict[str, list[dict]] = defaultdict(list)
+    for r in truth:
+        by_vehicle[r["id"]].append(r)
+    out = {}
+    for tid, rows in by_vehicle.items():
+        x, y, _ = frame.to_enu(np.array([r["lat"] for r in rows]),
+                               np.array([r["lon"] for r in rows]), 0.0)
+        out[tid] = (rows, np.array([r["t"] for r in rows]), np.atleast_1d(x),
+                    np.atleast_1d(y))
+    return out
+
+
+def score(directory: Path) -> dict:
+    """Every score of a capture directory (see the module docstring)."""
     cap = read_capture(directory)
     rve_cfg, obu_cfg, truth, schedule = (cap["rve_cfg"], cap["obu_cfg"], cap["truth"],
                                          cap["schedule"])
     ticks, tracks, rx, events = cap["ticks"], cap["tracks"], cap["rx"], cap["events"]
-    frame = EnuFrame(*obu_cfg["origin"])
     names = {tid: v for v, tid in rve_cfg["vehicles"].items()}
-
-    # time: OBU clock = dataset time + a whole number of minutes
-    host_rows = [r for r in truth if r["host"]]
-    first = ticks[0]
-    matches = [r["t"] for r in host_rows if round(r["t"] * 1000) % 60_000 == first["sec_mark"]]
-    if not matches:
-        raise ScoreError(f"{directory}: the OBU's first tick (secMark {first['sec_mark']}) "
-                         "matches no host sample of the RVE's truth")
-    offset = first["t"] - matches[0]
-
-    # truth per vehicle in the OBU's frame
-    by_vehicle: dict[str, list[dict]] = defaultdict(list)
-    for r in truth:
-        by_vehicle[r["id"]].append(r)
-    truth_xy = {}
-    for tid, rows in by_vehicle.items():
-        t = np.array([r["t"] for r in rows])
-        x, y, _ = frame.to_enu(np.array([r["lat"] for r in rows]),
-                               np.array([r["lon"] for r in rows]), 0.0)
-        truth_xy[tid] = (t, np.atleast_1d(x), np.atleast_1d(y))
+    offset = clock_offset(truth, ticks[0], directory)
+    truth_xy = {tid: (t, x, y)
+                for tid, (_, t, x, y) in truth_in_frame(truth, obu_cfg["origin"]).items()}
 
     per_rv: dict[str, list[float]] = defaultdict(list)
     for row in tracks:

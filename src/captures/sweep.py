@@ -430,20 +430,18 @@ def summary(rows: list[dict]) -> str:
     out = []
     for ds in dict.fromkeys(r["dataset"] for r in rows):
         mine = [r for r in rows if r["dataset"] == ds]
-        pers = {r["per"] for r in mine if r["rate"] == top_rate(mine)}
-        rates = {r["rate"] for r in mine if r["per"] == low_per(mine)}
-        if len(pers) > 1:
-            out.append(f"{ds}: PTE95 [m] against PER at {top_rate(mine):g} Hz")
-            out.append(text_table(*grid_table(rows, ds, "pte95_m", "per")))
-            if any(r["fcw_accuracy"] is not None for r in mine):
-                out.append(f"{ds}: FCW accuracy against PER at {top_rate(mine):g} Hz")
-                out.append(text_table(*grid_table(rows, ds, "fcw_accuracy", "per")))
-        if len(rates) > 1:
-            out.append(f"{ds}: PTE95 [m] against rate at PER {low_per(mine):g} %")
-            out.append(text_table(*grid_table(rows, ds, "pte95_m", "rate")))
-            if any(r["fcw_accuracy"] is not None for r in mine):
-                out.append(f"{ds}: FCW accuracy against rate at PER {low_per(mine):g} %")
-                out.append(text_table(*grid_table(rows, ds, "fcw_accuracy", "rate")))
+        fcw = any(r["fcw_accuracy"] is not None for r in mine)
+        axes = (("per", {r["per"] for r in mine if r["rate"] == top_rate(mine)},
+                 f"PER at {top_rate(mine):g} Hz"),
+                ("rate", {r["rate"] for r in mine if r["per"] == low_per(mine)},
+                 f"rate at PER {low_per(mine):g} %"))
+        for axis, values, against in axes:
+            if len(values) < 2:
+                continue
+            for metric, title in (("pte95_m", "PTE95 [m]"), ("fcw_accuracy", "FCW accuracy")):
+                if metric == "pte95_m" or fcw:
+                    out.append(f"{ds}: {title} against {against}")
+                    out.append(text_table(*grid_table(rows, ds, metric, axis)))
         out.append("")
     return "\n".join(out)
 

@@ -136,7 +136,13 @@ def test_sigterm_stops_flushes_and_keeps_the_capture(tmp_path):
                              "--no-progress"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True)
     try:
-        time.sleep(2.5)
+        # stop it mid-run, once it has sent something (bounded wait: a slow start on a
+        # loaded machine must not make the test flaky)
+        schedule = tmp_path / "rve.schedule.jsonl"
+        deadline = time.monotonic() + 20.0
+        while time.monotonic() < deadline and (
+                not schedule.is_file() or schedule.read_text().count("\n") <= 60):
+            time.sleep(0.1)
         proc.send_signal(signal.SIGTERM)
         out, err = proc.communicate(timeout=20)
     finally:

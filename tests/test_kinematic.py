@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from catc.predict.base import Observation, Predictor
-from catc.predict.kalman import KalmanPredictor, process_noise, transition
+from catc.predict.kalman import KalmanPredictor, measurement, process_noise, transition
 from catc.predict.kinematic import (
     TIME_TOLERANCE,
     ConstantAccelerationPredictor,
@@ -330,6 +330,54 @@ def test_kf_heading_of_a_stopped_vehicle_is_the_observed_one() -> None:
     r = kf.predict(2.0)
     assert (r.speed, r.heading) == (pytest.approx(0.0, abs=1e-9), 123.0)
     assert (r.x, r.y) == (pytest.approx(3.0), pytest.approx(4.0))
+
+
+class _MatrixKalman:
+    """The filter in its textbook matrix form (numpy), the reference for the scalar code."""
+
+    def __init__(self, q: float, r: tuple[float, float, float]) -> None:
+        self.q, self.r = q, np.diag(r)
+        self.t = None
+
+    def update(self, o: Observation) -> None:
+        z = measurement(o)
+        if self.t is None:
+            self.x, self.p = z, self.r.copy()
+        else:
+            dt = o.t - self.t
+            a = transition(dt)
+            prior = a @ self.x
+            cov = a @ self.p @ a.T + process_noise(dt, self.q)
+            gain = np.linalg.solve(cov + self.r, cov).T
+            keep = np.eye(3) - gain
+            self.x = prior + gain @ (z - prior)
+            cov = keep @ cov @ keep.T + gain @ self.r @ gain.T
+            self.p = 0.5 * (cov + cov.T)
+        self.t = o.t
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_kf_scalar_arithmetic_is_the_matrix_filter(seed: int) -> None:
+    """The written-out float arithmetic of KalmanPredictor is the matrix form of the
+    Kalman filter: same state and covariance after irregular updates (noise, turns,
+    gaps of lost messages), and the same propagated position variance."""
+    rng = np.random.default_rng(seed)
+    q, r = float(rng.uniform(0.1, 3.0)), tuple(rng.uniform(0.2, 12.0, 3).tolist())
+    kf, ref = KalmanPredictor(q=q, r=r), _MatrixKalman(q, r)
+    t = 0.0
+    for _ in range(300):
+        t += float(rng.choice([0.1, 0.1, 0.2, 0.5, 1.3]))
+        o = Observation(t, float(rng.normal(0, 50)), float(rng.normal(0, 50)),
+                        float(rng.uniform(0, 30)), float(rng.uniform(0, 360)),
+                        float(rng.normal(0, 2)), float(rng.normal(0, 10)))
+        kf.update(o)
+        ref.update(o)
+        np.testing.assert_allclose(kf.state, ref.x, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(kf.covariance, ref.p, rtol=1e-9, atol=1e-12)
+    for dt in (0.0, 0.1, 1.0, 4.0):
+        row = transition(dt)[0]
+        var = row @ ref.p @ row + q * dt**5 / 20.0
+        assert kf.predict(t + dt).var_x == pytest.approx(var, rel=1e-9)
 
 
 def test_kf_parameters_are_checked() -> None:

@@ -229,8 +229,9 @@ def _fcw_task(tables: dict[str, MobilityTable] | None, trip: str, predictor: str
               seed: int, truth) -> tuple[str, CellResult, float]:
     """FCW of one trip's scene through the CA-TC (:func:`catc.sweep.cam_run`)."""
     t0 = time.process_time()
-    r = cam_run(fcw_scene((tables or _TABLES)[trip]), predictor, cell, seed, truth, wire=False)
-    r.pte, r.sent, r.dropped = np.zeros(0, np.float32), 0, 0  # PTE comes from _pte_task
+    r = cam_run(fcw_scene((tables or _TABLES)[trip]), predictor, cell, seed, truth, wire=False,
+                pte=False)
+    r.sent, r.dropped = 0, 0  # PTE and the counts come from _pte_task
     return trip, r, time.process_time() - t0
 
 

@@ -202,12 +202,14 @@ def lockstep_errors(tracks: Sequence[tuple[str, Track]], predictor: str, cell: C
 
 
 def cam_run(table: MobilityTable, predictor: str, cell: Cell, seed: int,
-            truth: np.ndarray | None = None, *, wire: bool = True) -> CellResult:
+            truth: np.ndarray | None = None, *, wire: bool = True,
+            pte: bool = True) -> CellResult:
     """Run ``table`` through ``cell``'s channel into the CA-TC with ``predictor`` and score
     it as ``captures score`` scores a live capture: PTE of every tracked RV at every tick,
     FCW per tick against ``truth`` (:func:`truth_fcw` of the table, computed when None).
 
     ``wire``: BSM values through UPER encode/decode, as a live OBU receives them.
+    ``pte``: False leaves the PTE out (an empty array), for runs scored on the FCW only.
     """
     from catc.replay import plan, simulate, temp_id
 
@@ -233,7 +235,7 @@ def cam_run(table: MobilityTable, predictor: str, cell: Cell, seed: int,
     k = -1
     for k, snap in enumerate(simulate(the_plan, cam, wire=wire)):
         t = float(host_t[k])  # the tick's dataset time (the snapshot's is on the secMark clock)
-        if len(snap):
+        if pte and len(snap):
             keep, ex, ey = [], [], []
             for i, tid in enumerate(snap.ids.tolist()):
                 tt = truth_tracks.get(tid)
@@ -265,7 +267,7 @@ def run_cell(table: MobilityTable, predictor: str, cell: Cell, seed: int,
     ticks = events = 0
     if fcw:
         scene = fcw_scene(table)
-        r = cam_run(scene, predictor, cell, seed, truth, wire=False)
+        r = cam_run(scene, predictor, cell, seed, truth, wire=False, pte=False)
         conf, ticks, events = r.fcw, r.ticks, r.fcw_events
     return CellResult(table.name, predictor, cell, seed, pte, conf, sent, dropped, ticks,
                       events)

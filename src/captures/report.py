@@ -41,7 +41,7 @@ predictor, in the layout of the paper's SPMD table, with the paper's numbers nex
 ours), PTE95 and FCW accuracy against PER and rate, the threshold-exceedance grid, where
 HGP wins and where it does not, H1 (fit time against TW, next to scikit-learn) and H2
 (model persistency against cluster size, new kernels on held-out trips), the dataset
-provenance and the run parameters.  Example (everything, ~12 min on 2 cores):
+provenance and the run parameters.  Example (everything, ~8 min on 2 idle cores):
 
   captures report --data ../shared/data --workers 2 --out out/report
 

@@ -6,7 +6,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 SHARED ?= ../shared/data
 
-.PHONY: demo test lint bench bank report clean install
+.PHONY: demo test lint bench bank nn report clean install
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -49,6 +49,19 @@ bank: $(VENV)/.installed
 	  --holdout $(SHARED)/openacc-zalazone/short_setting_handling_part36.csv \
 	  --holdout $(SHARED)/openacc-zalazone/no_ACC_handling_part40.csv \
 	  --out src/catc/predict/default_bank.json
+
+# Re-create the neural baselines' weights shipped in the package (ae, ae-d, lstm, lstm-d)
+# from ../shared/data: the HGP bank's training trips and hold-outs (about an hour on 2 cores).
+nn: $(VENV)/.installed-test
+	$(BIN)/captures train-nn \
+	  --dataset $(SHARED)/openacc-zalazone/short_setting_dynamic_part1.csv \
+	  --dataset $(SHARED)/openacc-zalazone/short_setting_dynamic_part22.csv \
+	  --dataset $(SHARED)/openacc-zalazone/long_setting_dynamic_part16.csv \
+	  --dataset $(SHARED)/openacc-zalazone/mixed_dynamic_part7.csv \
+	  --dataset ngsim:$(SHARED)/ngsim-i80-pairs \
+	  --holdout $(SHARED)/openacc-zalazone/short_setting_handling_part36.csv \
+	  --holdout $(SHARED)/openacc-zalazone/no_ACC_handling_part40.csv \
+	  --out src/catc/predict/nn
 
 clean:
 	rm -rf $(VENV) build *.egg-info src/*.egg-info .pytest_cache

@@ -14,7 +14,17 @@ import sys
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-from captures import decode, evaluate, plot, replay, report, score, sweep, train_bank
+from captures import (
+    decode,
+    evaluate,
+    plot,
+    replay,
+    report,
+    score,
+    sweep,
+    train_bank,
+    train_nn,
+)
 from catc.cliargs import dispatch, make_parser
 
 DESCRIPTION = """\
@@ -28,7 +38,8 @@ Capture-and-score post analysis for the V2X testbench.
   report       the paper's experiments on real data as one HTML/Markdown report
   score        PTE, FCW accuracy and counts of an `rve run` + `obu run` capture
   sweep        PER x rate x predictor x dataset: the paper's tables, on real data
-  train-bank   train the HGP kernel bank on real trips (Algorithm 1)"""
+  train-bank   train the HGP kernel bank on real trips (Algorithm 1)
+  train-nn     train the neural baselines (AE, LSTM; direct and indirect) on real trips"""
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -41,6 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     score.register(sub)
     sweep.register(sub)
     train_bank.register(sub)
+    train_nn.register(sub)
     return dispatch(parser, argv)
 
 

@@ -16,7 +16,7 @@ from pathlib import Path
 from captures.datasets import DatasetError, load
 from captures.progress import Progress
 from catc.evaluate import Score, evaluate
-from catc.predict import NAMES, make_predictor
+from catc.predict import NAMES, available, check, make_predictor
 
 HELP = """\
 Replay every vehicle of the given trips through a seeded Bernoulli channel at each PER and
@@ -41,8 +41,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="PATH or KIND:PATH (a file or a folder); repeat for more")
     p.add_argument("--per", type=partial(csv_list, float), default=[0, 50, 80, 90, 95],
                    help="packet error rates in %% (default 0,50,80,90,95)")
-    p.add_argument("--predictors", type=partial(csv_list, str), default=list(NAMES),
-                   help=f"comma-separated, from {','.join(NAMES)} (default all)")
+    p.add_argument("--predictors", type=partial(csv_list, str), default=None,
+                   help=f"comma-separated, from {','.join(NAMES)} (default: all that are "
+                        "installed; the neural ones need the nn extra)")
     p.add_argument("--seeds", type=int, default=1, help="loss patterns per PER (default 1)")
     p.add_argument("--max-trips", type=int, default=0,
                    help="use only the first N trips of each dataset (0 = all)")
@@ -67,10 +68,13 @@ def table(scores: list[Score]) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    unknown = [n for n in args.predictors if n not in NAMES]
-    if unknown:
-        print(f"captures evaluate: unknown predictor {unknown[0]!r}; known: {','.join(NAMES)}",
-              file=sys.stderr)
+    if args.predictors is None:
+        args.predictors = list(available())
+    try:
+        for n in args.predictors:
+            check(n)
+    except ValueError as err:
+        print(f"captures evaluate: {err}", file=sys.stderr)
         return 2
     if any(not 0 <= p <= 100 for p in args.per):
         print("captures evaluate: --per takes percentages from 0 to 100", file=sys.stderr)

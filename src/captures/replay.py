@@ -20,7 +20,7 @@ from captures.progress import Progress
 from catc.apps import APPS, AppsConfig, SafetyApps
 from catc.cam import CamConfig, ContextAwareMap
 from catc.channel import bernoulli_received
-from catc.predict import NAMES
+from catc.predict import NAMES, check
 from catc.replay import run_offline, temp_id
 
 HELP = """\
@@ -55,8 +55,10 @@ def _error(message: str) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.predictor not in NAMES:
-        return _error(f"unknown predictor {args.predictor!r}; known: {','.join(NAMES)}")
+    try:
+        check(args.predictor)
+    except ValueError as err:
+        return _error(str(err))
     if not 0.0 <= args.per <= 100.0:
         return _error("--per takes a percentage from 0 to 100")
     try:

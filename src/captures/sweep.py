@@ -40,7 +40,7 @@ from captures.datasets import DatasetError, load_files
 from captures.evaluate import csv_list
 from captures.progress import Progress
 from catc.mobility import MobilityTable
-from catc.predict import NAMES
+from catc.predict import NAMES, available, check
 from catc.sweep import (
     Cell,
     CellResult,
@@ -98,8 +98,9 @@ def add_grid_arguments(p: argparse.ArgumentParser) -> None:
                         "(default); cross: every pair")
     p.add_argument("--burst", type=float, default=1.0,
                    help="mean loss burst length in messages (default 1: independent)")
-    p.add_argument("--predictors", type=partial(csv_list, str), default=list(NAMES),
-                   help=f"comma-separated, from {','.join(NAMES)} (default all)")
+    p.add_argument("--predictors", type=partial(csv_list, str), default=None,
+                   help=f"comma-separated, from {','.join(NAMES)} (default: all that are "
+                        "installed; the neural ones need the nn extra)")
     p.add_argument("--fcw-predictors", type=partial(csv_list, str), default=None,
                    help="predictors whose FCW accuracy is measured (default: the same as "
                         "--predictors; 'none' for none): FCW runs the whole CA-TC and costs "
@@ -381,7 +382,7 @@ def grid_table(rows: list[dict], dataset: str, metric: str, axis: str = "per",
     """(header, body) of ``metric`` per predictor against ``axis`` for one dataset: against
     PER at the top rate (the paper's SPMD table), or against rate at the lowest PER.
     ``metric`` is a row key (``pte95_m``, ``fcw_accuracy``, ...) or ``exceed:TH``.  With
-    ``ratios_to``, rows ``X/hgp`` follow for the kinematic baselines."""
+    ``ratios_to``, rows ``X/hgp`` follow for CA, KF, CTRV and the LSTM."""
     mine = [r for r in rows if r["dataset"] == dataset]
     if axis == "per":
         mine = [r for r in mine if r["rate"] == top_rate(mine)]
@@ -410,7 +411,7 @@ def grid_table(rows: list[dict], dataset: str, metric: str, axis: str = "per",
             if any(value(by.get((n, k))) is not None for k in keys)]
     if ratios_to and ratios_to in names and metric == "pte95_m":
         for n in names:
-            if n in ("ca", "kf", "ctrv"):
+            if n in ("ca", "kf", "ctrv", "lstm"):
                 cells_ = []
                 for k in keys:
                     a, b = value(by.get((n, k))), value(by.get((ratios_to, k)))
@@ -465,9 +466,13 @@ def check_args(args: argparse.Namespace, prog: str) -> tuple[list[Cell], list[st
     """The grid and the FCW predictors, or SweepError for bad flags."""
     if not args.dataset:
         raise SweepError("give at least one --dataset SPEC")
+    if args.predictors is None:
+        args.predictors = list(available())
     for n in args.predictors + [p for p in (args.fcw_predictors or []) if p != "none"]:
-        if n not in NAMES:
-            raise SweepError(f"unknown predictor {n!r}; known: {','.join(NAMES)}")
+        try:
+            check(n)
+        except ValueError as err:
+            raise SweepError(str(err)) from None
     if args.seeds < 1 or args.workers < 1:
         raise SweepError("--seeds and --workers must be at least 1")
     try:

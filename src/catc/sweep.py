@@ -167,14 +167,13 @@ def lockstep_errors(tracks: Sequence[tuple[str, Track]], predictor: str, cell: C
                     seed: int) -> tuple[list[np.ndarray], int, int]:
     """:func:`track_errors` for many vehicles at once, each with its own predictor and its
     channel key (``TRIP/VEHICLE``): they advance in lockstep, sample by sample, so the HGP
-    family forecasts stacked (:func:`catc.predict.hgp.forecast_many_at`) as the OBU does;
-    the result is the one-by-one replay's to round-off (:func:`catc.evaluate.replay_track`
-    is the readable form).  Returns the scored PTEs of each vehicle (float32) and the
-    (sent, dropped) counts."""
+    family and the neural baselines forecast stacked (:func:`catc.predict.prepare_at`), as
+    the OBU does; the result is the one-by-one replay's to round-off
+    (:func:`catc.evaluate.replay_track` is the readable form).  Returns the scored PTEs of
+    each vehicle (float32) and the (sent, dropped) counts."""
     from catc.channel import sent_indices
     from catc.evaluate import observations
-    from catc.predict import make_predictor
-    from catc.predict.hgp import forecast_many_at
+    from catc.predict import make_predictor, prepare_at
 
     models = [make_predictor(predictor) for _ in tracks]
     obs = [observations(tr) for _, tr in tracks]
@@ -184,7 +183,6 @@ def lockstep_errors(tracks: Sequence[tuple[str, Track]], predictor: str, cell: C
     errs = [np.full(len(o), np.nan) for o in obs]
     started = [False] * len(tracks)
     lengths = [len(o) for o in obs]
-    stacked = predictor.startswith("hgp")
     for k in range(max(lengths, default=0)):
         live = [i for i, n in enumerate(lengths) if k < n]
         for i in live:
@@ -192,8 +190,7 @@ def lockstep_errors(tracks: Sequence[tuple[str, Track]], predictor: str, cell: C
                 models[i].update(obs[i][k])
                 started[i] = True
         live = [i for i in live if started[i]]
-        if stacked:
-            forecast_many_at((models[i], obs[i][k].t) for i in live)
+        prepare_at([(models[i], obs[i][k].t) for i in live])
         for i in live:
             o = obs[i][k]
             p = models[i].predict(o.t)

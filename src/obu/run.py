@@ -49,7 +49,7 @@ from catc.apps import SafetyApps
 from catc.cam import CamConfig, ContextAwareMap, MapSnapshot, SecMarkClock
 from catc.errors import DecodeError
 from catc.j2735 import decode_received
-from catc.predict import NAMES
+from catc.predict import NAMES, check
 from catc.replay import split_due
 from hil.capture import JsonLines, versions
 from hil.config import address
@@ -379,6 +379,11 @@ def run(args: argparse.Namespace) -> int:
 
     if args.max_tracks is not None and args.max_tracks < 1:
         print("obu run: --max-tracks must be >= 1", file=sys.stderr)
+        return 2
+    try:
+        check(args.predictor)
+    except ValueError as err:  # a neural predictor without PyTorch or its weights
+        print(f"obu run: {err}", file=sys.stderr)
         return 2
     try:
         counters = asyncio.run(serve(args))

@@ -8,14 +8,23 @@ cs         constant speed and heading
 ca         constant acceleration along the heading, stopping at zero speed
 kf         the paper's Kalman filter, constant-acceleration dynamics
 ctrv       constant turn rate (from the yaw rate) and velocity
+ae         the paper's autoencoder baseline, indirect (speed and heading)
+ae-d       the autoencoder on x and y (direct)
+lstm       the paper's LSTM baseline, indirect (speed and heading)
+lstm-d     the LSTM on x and y (direct)
 hgp        the paper's indirect Hybrid Gaussian Process (speed and heading GPs)
 hgp-d      the direct HGP (GPs on x and y)
 =========  =====================================================================
+
+The neural baselines (:mod:`catc.predict.nn`) need PyTorch, the ``nn`` extra: without it
+:func:`make_predictor` raises :class:`catc.predict.nn.MissingExtra` (a ``ValueError``)
+saying how to install it, and :func:`available` leaves them out.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from functools import partial
 
 from catc.predict.base import Observation, Prediction, Predictor
 
@@ -29,19 +38,51 @@ def _factories() -> dict[str, Callable[..., Predictor]]:
         CtrvPredictor,
         HoldPredictor,
     )
+    from catc.predict.nn import NN_NAMES, NnPredictor
 
     return {"hold": HoldPredictor, "cs": ConstantSpeedPredictor,
             "ca": ConstantAccelerationPredictor, "kf": KalmanPredictor, "ctrv": CtrvPredictor,
+            **{n: partial(NnPredictor, n) for n in NN_NAMES},
             "hgp": HgpPredictor, "hgp-d": HgpDirectPredictor}
 
 
-NAMES = ("hold", "cs", "ca", "kf", "ctrv", "hgp", "hgp-d")
+#: Every predictor, in the order of the paper's tables: kinematic, neural, HGP.
+NAMES = ("hold", "cs", "ca", "kf", "ctrv", "ae", "ae-d", "lstm", "lstm-d", "hgp", "hgp-d")
+
+
+def check(name: str) -> None:
+    """Raise ``ValueError`` unless ``make_predictor(name)`` can work here: an unknown name
+    (the message lists the known ones), or a neural predictor without PyTorch
+    (:class:`catc.predict.nn.MissingExtra`, with the install command) or its weights."""
+    if name not in NAMES:
+        raise ValueError(f"unknown predictor {name!r}; known: {', '.join(NAMES)}")
+    from catc.predict.nn import NN_NAMES, network
+
+    if name in NN_NAMES:
+        try:
+            network(name)
+        except FileNotFoundError as err:
+            raise ValueError(str(err)) from None
+
+
+def available() -> tuple[str, ...]:
+    """The predictors that can be made here (all but the neural ones without PyTorch)."""
+    out = []
+    for n in NAMES:
+        try:
+            check(n)
+        except ValueError:
+            continue
+        out.append(n)
+    return tuple(out)
 
 
 def make_predictor(name: str, **kwargs) -> Predictor:
     """A new predictor by name; ``kwargs`` go to its constructor.
 
-    Raises ``ValueError`` naming the known predictors for an unknown name.
+    Raises ``ValueError`` naming the known predictors for an unknown name, and
+    :class:`catc.predict.nn.MissingExtra` (a ``ValueError``) for a neural one without
+    PyTorch.
     """
     factories = _factories()
     if name not in factories:
@@ -51,12 +92,21 @@ def make_predictor(name: str, **kwargs) -> Predictor:
 
 def prepare(predictors, t: float) -> int:
     """Let predictors that can do it stacked prepare the answers for times up to ``t``
-    (one call per tick before the per-RV ``predict`` calls; today the HGP family:
-    :func:`catc.predict.hgp.forecast_many`).  Results are the same as without the call.
-    Returns the number of forecasts made."""
-    from catc.predict.hgp import forecast_many
+    (one call per tick before the per-RV ``predict`` calls): the HGP family
+    (:func:`catc.predict.hgp.forecast_many`) and the neural baselines
+    (:func:`catc.predict.nn.forecast_many_at`, one batch per network).  Results are the
+    same as without the call.  Returns the number of forecasts made."""
+    return prepare_at([(p, t) for p in predictors])
 
-    return forecast_many(predictors, t)
+
+def prepare_at(items) -> int:
+    """:func:`prepare` with a time per predictor: ``(predictor, t)`` pairs (predictors on
+    different clocks, e.g. the vehicles of many trips replayed in lockstep)."""
+    from catc.predict import hgp, nn
+
+    items = list(items)
+    return hgp.forecast_many_at(items) + nn.forecast_many_at(items)
 
 
-__all__ = ["NAMES", "Observation", "Prediction", "Predictor", "make_predictor", "prepare"]
+__all__ = ["NAMES", "Observation", "Prediction", "Predictor", "available", "check",
+           "make_predictor", "prepare", "prepare_at"]

@@ -1,0 +1,90 @@
+"""What every forecasting predictor shares: a forecast table on the 0.1 s grid after the
+last BSM, read at any time, and the position integration of speed and heading forecasts.
+
+The HGP family (:mod:`catc.predict.hgp`) and the neural baselines (:mod:`catc.predict.nn`)
+make a forecast once per received BSM, as far ahead as the OBU will ask (its tick plus the
+2 s prediction horizon), and read it at every tick until the next BSM arrives.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from catc.predict.base import Observation, Prediction
+
+#: The forecast grid step, s (the BSM period at 10 Hz).
+DT = 0.1
+
+
+class Forecast:
+    """A forecast from the last BSM: the state at τ = k·DT for k = 0..K, one row per
+    quantity of ``table``: x, y, speed, heading (deg), var_x, var_y."""
+
+    __slots__ = ("end", "source", "table", "tau")
+
+    def __init__(self, tau: np.ndarray, table: np.ndarray, source: list[str]) -> None:
+        self.tau = tau
+        self.table = table
+        self.source = source
+        self.end = float(tau[-1])  # the horizon, s
+
+    x = property(lambda self: self.table[0])
+    y = property(lambda self: self.table[1])
+    speed = property(lambda self: self.table[2])
+    heading = property(lambda self: self.table[3])
+    var_x = property(lambda self: self.table[4])
+    var_y = property(lambda self: self.table[5])
+
+
+def integrate(x0: float, y0: float, tau: np.ndarray, mu_s: np.ndarray, mu_h: np.ndarray,
+              var_h: np.ndarray, rule: str = "trapezoid") -> tuple[np.ndarray, np.ndarray]:
+    """Positions from speed/heading forecasts at ``tau`` (paper eq. "position prediction 2").
+
+    The expected velocity is E[s]·E[sin h], E[s]·E[cos h] with E[cos h] = exp(−σh²/2)·cos μh
+    (heading clockwise from north, so east uses sin).  ``rule`` "left" is the paper's
+    literal recursion x_{j+1} = x_j + Δt·v_j; "trapezoid" averages v_j and v_{j+1}.
+    """
+    damp = np.exp(-0.5 * var_h)
+    vx = mu_s * damp * np.sin(mu_h)
+    vy = mu_s * damp * np.cos(mu_h)
+    dt = np.diff(tau)
+    if rule == "trapezoid":
+        dx, dy = 0.5 * (vx[1:] + vx[:-1]) * dt, 0.5 * (vy[1:] + vy[:-1]) * dt
+    elif rule == "left":
+        dx, dy = vx[:-1] * dt, vy[:-1] * dt
+    else:
+        raise ValueError(f"unknown integration rule {rule!r}")
+    return (x0 + np.concatenate(([0.0], np.cumsum(dx))),
+            y0 + np.concatenate(([0.0], np.cumsum(dy))))
+
+
+def read(f: Forecast, tau: float) -> Prediction:
+    """The forecast state ``tau`` seconds after the last BSM (linear between 0.1 s steps)."""
+    if tau >= f.end:  # beyond the computed horizon: constant speed onwards
+        x, y, speed, heading, var_x, var_y = f.table[:, -1].tolist()
+        extra = tau - f.end
+        h = math.radians(heading)
+        return Prediction(x + speed * extra * math.sin(h), y + speed * extra * math.cos(h),
+                          speed, heading, var_x, var_y, f.source[-1])
+    k = min(int(tau / DT), len(f.source) - 2)  # float round-off at the horizon's end
+    w = min(tau / DT - k, 1.0)
+    (x0, x1), (y0, y1), (s0, s1), (h0, h1), (vx0, vx1), (vy0, vy1) = \
+        f.table[:, k:k + 2].tolist()
+    dh = (h1 - h0 + 180.0) % 360.0 - 180.0
+    return Prediction((1 - w) * x0 + w * x1, (1 - w) * y0 + w * y1, (1 - w) * s0 + w * s1,
+                      (h0 + w * dh) % 360.0, (1 - w) * vx0 + w * vx1, (1 - w) * vy0 + w * vy1,
+                      f.source[k + 1])
+
+
+def bsm_prediction(last: Observation) -> Prediction:
+    """The state a fresh BSM gives (zero variance, source ``"bsm"``)."""
+    return Prediction(last.x, last.y, last.speed, last.heading, 0.0, 0.0, "bsm")
+
+
+def covers(f: Forecast, tau: float, horizon_s: float) -> bool:
+    """Whether forecast ``f`` reaches ``tau`` s (or the longest forecast made).  The step
+    count rounds down by up to 1e-9 s, so a forecast made for ``tau`` may end
+    a hair before it; it still covers it (reading beyond the end extrapolates)."""
+    return f.end >= min(tau, horizon_s) - 1e-9

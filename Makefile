@@ -38,30 +38,25 @@ report: $(VENV)/.installed-test
 	OPENBLAS_NUM_THREADS=1 $(BIN)/captures report --data $(SHARED) --workers 2 \
 	  --live 50@10,90@10 --out out/report
 
-# Re-create the default HGP kernel bank shipped in the package from ../shared/data.
-bank: $(VENV)/.installed
-	$(BIN)/captures train-bank \
+# The learned models' training trips (the OpenACC dynamic runs and the NGSIM pairs) and the
+# trips held out of training (the OpenACC handling runs), shared by `bank` and `nn`.
+TRAIN_TRIPS = \
 	  --dataset $(SHARED)/openacc-zalazone/short_setting_dynamic_part1.csv \
 	  --dataset $(SHARED)/openacc-zalazone/short_setting_dynamic_part22.csv \
 	  --dataset $(SHARED)/openacc-zalazone/long_setting_dynamic_part16.csv \
 	  --dataset $(SHARED)/openacc-zalazone/mixed_dynamic_part7.csv \
 	  --dataset ngsim:$(SHARED)/ngsim-i80-pairs \
 	  --holdout $(SHARED)/openacc-zalazone/short_setting_handling_part36.csv \
-	  --holdout $(SHARED)/openacc-zalazone/no_ACC_handling_part40.csv \
-	  --out src/catc/predict/default_bank.json
+	  --holdout $(SHARED)/openacc-zalazone/no_ACC_handling_part40.csv
+
+# Re-create the default HGP kernel bank shipped in the package from ../shared/data.
+bank: $(VENV)/.installed
+	$(BIN)/captures train-bank $(TRAIN_TRIPS) --out src/catc/predict/default_bank.json
 
 # Re-create the neural baselines' weights shipped in the package (ae, ae-d, lstm, lstm-d)
 # from ../shared/data: the HGP bank's training trips and hold-outs (about an hour on 2 cores).
 nn: $(VENV)/.installed-test
-	$(BIN)/captures train-nn \
-	  --dataset $(SHARED)/openacc-zalazone/short_setting_dynamic_part1.csv \
-	  --dataset $(SHARED)/openacc-zalazone/short_setting_dynamic_part22.csv \
-	  --dataset $(SHARED)/openacc-zalazone/long_setting_dynamic_part16.csv \
-	  --dataset $(SHARED)/openacc-zalazone/mixed_dynamic_part7.csv \
-	  --dataset ngsim:$(SHARED)/ngsim-i80-pairs \
-	  --holdout $(SHARED)/openacc-zalazone/short_setting_handling_part36.csv \
-	  --holdout $(SHARED)/openacc-zalazone/no_ACC_handling_part40.csv \
-	  --out src/catc/predict/nn
+	$(BIN)/captures train-nn $(TRAIN_TRIPS) --out src/catc/predict/nn
 
 clean:
 	rm -rf $(VENV) build *.egg-info src/*.egg-info .pytest_cache

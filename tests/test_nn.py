@@ -234,3 +234,33 @@ def test_training_flags_are_checked(tmp_path) -> None:
         assert done.returncode == 2
         lines = done.stderr.strip().splitlines()
         assert len(lines) == 1 and words in lines[0], lines
+
+
+# --- the shipped weights on real trips they were not trained on ------------------------------
+
+
+def test_shipped_models_on_a_held_out_run() -> None:
+    """On an OpenACC handling run held out of training (tight curves, unlike the training
+    runs), at PER 50 % and 90 %: every neural baseline tracks far better than holding the
+    last BSM, and the indirect LSTM better than constant speed and heading at PER 90 %:
+    it learned more than the last speed and heading."""
+    from dataclasses import replace
+    from functools import partial
+
+    from captures.datasets import load
+    from catc.evaluate import evaluate
+    from catc.predict import make_predictor
+
+    table = load(str(shared_path("openacc-zalazone", "no_ACC_handling_part40.csv")))[0]
+    for name in NN_NAMES:
+        meta = make_predictor(name).net.meta
+        assert "no_ACC_handling_part40.csv" in meta["holdout"]
+        assert "no_ACC_handling_part40.csv" not in meta["trained_on"]
+    table = replace(table, tracks=dict(list(table.tracks.items())[:5]))
+    names = ("hold", "cs", *NN_NAMES)
+    scores = evaluate([table], {n: partial(make_predictor, n) for n in names}, [0.5, 0.9])
+    pte = {(s.predictor, s.per): s.pte95_m for s in scores}
+    for per in (0.5, 0.9):
+        for name in NN_NAMES:
+            assert pte[name, per] < 0.2 * pte["hold", per], (name, per, pte)
+    assert pte["lstm", 0.9] < pte["cs", 0.9], pte

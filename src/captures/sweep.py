@@ -68,12 +68,14 @@ PTE > PTE_th.  Rows: {dataset, predictor, per, rate, pte95_m, fcw_accuracy, n_ti
 with the code version and every parameter.
 
 The default grid is the paper's: every PER (0..95 %) at the highest rate, and every rate
-(10..1 Hz) at the lowest PER (--grid cross for every pair).  Example (the H3 table on
-the shared real data, ~10 min on 2 cores):
+(10..1 Hz) at the lowest PER (--grid cross for every pair).  The predictors are all
+that are installed (the neural ones need the nn extra).  Example (the H3 table on the
+shared real data, FCW for the four predictors of the paper's FCW figures, ~10 min on 2
+cores; FCW for all eleven doubles that):
 
   captures sweep --dataset ../shared/data/openacc-zalazone \\
       --dataset ngsim:../shared/data/ngsim-i80-pairs --workers 2 \\
-      --json out/sweep.json --plots out/sweep"""
+      --fcw-predictors hold,ca,kf,hgp --json out/sweep.json --plots out/sweep"""
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -203,6 +205,7 @@ _TABLES: dict[str, MobilityTable] = {}
 
 def _init_worker(tables: dict[str, MobilityTable]) -> None:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    os.environ.setdefault("OMP_NUM_THREADS", "1")  # torch, for the neural predictors
     _TABLES.clear()
     _TABLES.update(tables)
 
@@ -271,7 +274,8 @@ class Engine:
                 self._client = Client(self.dask, timeout="10s")
             except (OSError, TimeoutError) as err:
                 raise SweepError(f"cannot reach the Dask scheduler {self.dask}: {err}") from None
-            self._client.run(os.environ.setdefault, "OPENBLAS_NUM_THREADS", "1")
+            for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):
+                self._client.run(os.environ.setdefault, var, "1")
             self._scattered = self._client.scatter(self.tables, broadcast=True, hash=False)
         elif self.workers > 1:
             from concurrent.futures import ProcessPoolExecutor
@@ -313,7 +317,8 @@ class Engine:
 def _cost(table: MobilityTable, predictor: str, fcw: bool) -> float:
     """A rough relative cost (CPU seconds per 10,000 samples, measured), to start the
     longest tasks first and to weigh the progress bar."""
-    gp = {"hgp": 1.5, "hgp-d": 4.0}.get(predictor, 0.0)
+    gp = {"hgp": 1.5, "hgp-d": 4.0, "ae": 1.1, "ae-d": 1.1, "lstm": 1.6,
+          "lstm-d": 1.6}.get(predictor, 0.0)
     if fcw:  # the CA-TC on the host's ticks
         return len(table.tracks[table.default_host]) * (4.0 + gp) / 1e4
     return sum(len(tr) for tr in table.tracks.values()) * (0.15 + gp) / 1e4

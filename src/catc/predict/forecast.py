@@ -83,6 +83,15 @@ def bsm_prediction(last: Observation) -> Prediction:
     return Prediction(last.x, last.y, last.speed, last.heading, 0.0, 0.0, "bsm")
 
 
+def constant_speed(last: Observation, tau: float) -> Prediction:
+    """Constant speed and heading from ``last`` for ``tau`` s (source ``"cs"``): the
+    forecasting predictors' answer while they have too few BSMs to forecast from."""
+    h = math.radians(last.heading)
+    return Prediction(last.x + last.speed * tau * math.sin(h),
+                      last.y + last.speed * tau * math.cos(h), last.speed, last.heading,
+                      source="cs")
+
+
 def covers(f: Forecast, tau: float, horizon_s: float) -> bool:
     """Whether forecast ``f`` reaches ``tau`` s (or the longest forecast made).  The step
     count rounds down by up to 1e-9 s, so a forecast made for ``tau`` may end

@@ -81,7 +81,7 @@ from scipy.linalg import blas, cho_solve, lapack, solve_triangular
 from catc.predict import gp
 from catc.predict.bank import KernelBank, default_bank
 from catc.predict.base import Observation, Prediction
-from catc.predict.forecast import DT, integrate
+from catc.predict.forecast import DT, constant_speed, integrate
 from catc.predict.forecast import Forecast as _Forecast
 from catc.predict.forecast import bsm_prediction as _bsm
 from catc.predict.forecast import covers as _covers
@@ -1156,10 +1156,7 @@ class HgpDirectPredictor(_WindowPredictor):
         if tau == 0.0:
             return _bsm(last)
         if len(self._obs) < self.config.min_points:
-            h = math.radians(last.heading)
-            return Prediction(last.x + last.speed * tau * math.sin(h),
-                              last.y + last.speed * tau * math.cos(h), last.speed,
-                              last.heading, source="cs")
+            return constant_speed(last, tau)
         f = self._forecast
         if f is None or f.end < min(tau, self.config.horizon_s):
             f = self._forecast = self._make_forecast(max(tau, 3.0))

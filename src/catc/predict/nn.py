@@ -59,7 +59,15 @@ from pathlib import Path
 import numpy as np
 
 from catc.predict.base import Observation, Prediction
-from catc.predict.forecast import DT, Forecast, bsm_prediction, covers, integrate, read
+from catc.predict.forecast import (
+    DT,
+    Forecast,
+    bsm_prediction,
+    constant_speed,
+    covers,
+    integrate,
+    read,
+)
 from catc.predict.kinematic import check_observation, elapsed
 
 #: The names of the neural predictors (indirect, then direct).
@@ -314,10 +322,11 @@ def _network(name: str, folder: str) -> Network:
 
 
 def network(name: str) -> Network:
-    """The shipped (or ``CATC_NN_DIR``'s) model ``name``, loaded once per process."""
-    torch = torch_module()
-    if "OMP_NUM_THREADS" not in os.environ and torch.get_num_threads() > 1:
-        torch.set_num_threads(1)  # forecasts are small batches: threads cost more than they give
+    """The shipped (or ``CATC_NN_DIR``'s) model ``name``, loaded once per process.
+
+    Forecasts are small batches, where torch's threads cost more than they give: the
+    command-line tools run with ``OMP_NUM_THREADS=1``, which torch follows."""
+    torch_module()
     return _network(name, str(weights_dir()))
 
 
@@ -362,10 +371,7 @@ class NnPredictor:
         if tau == 0.0:
             return bsm_prediction(last)
         if len(self._obs) < self.config.min_points:
-            h = math.radians(last.heading)
-            return Prediction(last.x + last.speed * tau * math.sin(h),
-                              last.y + last.speed * tau * math.cos(h), last.speed,
-                              last.heading, source="cs")
+            return constant_speed(last, tau)
         f = self._forecast
         if f is None or not covers(f, tau, self.config.horizon_s):
             forecast_many_at([(self, t)])

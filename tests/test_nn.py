@@ -133,6 +133,32 @@ def test_batched_forecasts_are_the_one_by_one_forecasts(name: str) -> None:
             assert pa.source == name
 
 
+def test_forecasts_grow_by_doubling_and_keep_their_first_states() -> None:
+    """An AE forecast starts 0.5 s long (each state is a pass of the chain) and doubles
+    when the gap outgrows it; the LSTM's is one pass (3 s).  A longer forecast's first
+    states are the shorter one's."""
+    from catc.predict.nn import NnPredictor
+
+    p = NnPredictor("ae", random_network("ae", seed=5))
+    _feed(p)
+    end = p._obs[-1].t
+    a = p.predict(end + 0.1)
+    assert p._forecast.end == pytest.approx(0.5)
+    early = [p.predict(end + k * 0.1) for k in range(1, 6)]
+    p.predict(end + 0.7)
+    assert p._forecast.end == pytest.approx(1.0)
+    p.predict(end + 2.5)
+    assert p._forecast.end == pytest.approx(2.5)
+    again = [p.predict(end + k * 0.1) for k in range(1, 6)]
+    for e, g in zip(early, again, strict=True):
+        assert (e.x, e.y) == (pytest.approx(g.x, abs=1e-6), pytest.approx(g.y, abs=1e-6))
+    assert a.source == "ae"
+    q = NnPredictor("lstm", random_network("lstm"))
+    end = _feed(q)
+    q.predict(end + 0.1)
+    assert q._forecast.end == pytest.approx(3.0)
+
+
 def test_too_few_bsms_is_constant_speed_and_a_fresh_bsm_is_itself() -> None:
     from catc.predict.nn import NnPredictor
 

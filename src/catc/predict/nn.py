@@ -33,6 +33,9 @@ The series (our reading, the same for both models):
   those of its positions' differences.
 * Inputs and outputs are standardised with the training set's means and deviations
   (stored with the weights).
+* A forecast is made when a prediction is first needed after a BSM and reused until the
+  next one: as far as asked, and at least one pass of the model (the LSTM's 3 s, the AE's
+  0.5 s), doubled when a gap outgrows it.
 
 Fallbacks, as the HGP's: fewer than ``min_points`` BSMs received: constant speed (source
 ``"cs"``); a forecast never reverses (indirect: speed clipped at 0); beyond
@@ -386,9 +389,16 @@ class NnPredictor:
                       self.net.config.tw)
 
 
-def _steps(tau: float, c: NnPredictorConfig) -> int:
-    """Forecast states (0.1 s each) for a forecast reaching ``tau`` (at least 3 s)."""
-    return math.ceil(min(max(tau, 3.0), c.horizon_s) / DT - 1e-9)
+def _steps(p: NnPredictor, tau: float) -> int:
+    """Forecast states (0.1 s each) for ``p``'s forecast reaching ``tau``: at least one
+    pass of its model (the LSTM's 3 s; the AE's chain 0.5 s, each of its states being a
+    pass), and twice the forecast it replaces, so that a gap outgrowing its forecasts
+    costs at most about twice its length.  The states do not depend on how far a
+    forecast goes (a chain's first states are those of a shorter chain)."""
+    c, net = p.config, p.net.config
+    shortest = 0.5 if net.kind == "ae" else net.horizon * DT
+    before = p._forecast.end if p._forecast is not None else 0.0
+    return math.ceil(min(max(tau, shortest, 2.0 * before), c.horizon_s) / DT - 1e-9)
 
 
 def roll(net: Network, windows: np.ndarray, steps: int) -> np.ndarray:
@@ -452,7 +462,7 @@ def forecast_many_at(items: Iterable[tuple[object, float]]) -> int:
         f = p._forecast
         if f is not None and covers(f, tau, p.config.horizon_s):
             continue
-        groups.setdefault(id(p.net), []).append((p, _steps(tau, p.config)))
+        groups.setdefault(id(p.net), []).append((p, _steps(p, tau)))
     for group in groups.values():
         preds: Sequence[NnPredictor] = [p for p, _ in group]
         net = preds[0].net

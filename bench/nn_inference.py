@@ -10,7 +10,8 @@ OBU asks for its 2 s prediction horizon) is made
   sweep do at every tick; per forecast = call time / RVs).
 
 Each is timed ``--repeat`` times on the same windows; the best time of each forecast (or
-call) is kept, then the median over forecasts is printed.  ``hgp-d`` has no stacked form.
+call) is kept, then the median over forecasts is printed.  ``hgp-d`` and the closed-form
+kinematic models (``ca``) have no stacked form; theirs is the cost of ``predict``.
 
 Per OBU tick: ``bench/step.py``'s run (``ContextAwareMap.step`` with the safety apps, one
 core) at ``--tick-rvs`` RVs (default 200), median and p99 ms, and the ratio to ``hgp``.
@@ -47,6 +48,9 @@ from step import ORIGIN, scene  # noqa: E402
 from step import run as tick_run  # noqa: E402
 
 FEED_TICKS = 60
+# predictors whose forecasts ``prepare_at`` stacks; the others (hgp-d's per-RV GP, the
+# closed-form kinematic models) are timed by ``predict`` alone
+STACKED = ("ae", "ae-d", "lstm", "lstm-d", "hgp")
 
 
 def fed(name: str, data, frame: EnuFrame, n: int) -> tuple[list, float]:
@@ -70,14 +74,15 @@ def per_forecast(name: str, n: int, repeat: int) -> dict:
     stacked = math.inf
     for _ in range(repeat):
         for i, p in enumerate(preds):
-            p._forecast = None
+            if hasattr(p, "_forecast"):
+                p._forecast = None
             t0 = time.perf_counter()
-            if name == "hgp-d":
-                p.predict(t)
-            else:
+            if name in STACKED:
                 prepare_at([(p, t)])
+            else:
+                p.predict(t)
             alone[i] = min(alone[i], time.perf_counter() - t0)
-        if name != "hgp-d":
+        if name in STACKED:
             for p in preds:
                 p._forecast = None
             t0 = time.perf_counter()

@@ -71,7 +71,7 @@ The default grid is the paper's: every PER (0..95 %) at the highest rate, and ev
 (10..1 Hz) at the lowest PER (--grid cross for every pair).  The predictors are all
 that are installed (the neural ones need the nn extra).  Example (the H3 table on the
 shared real data, FCW for the four predictors of the paper's FCW figures, ~10 min on 2
-cores; FCW for all eleven doubles that):
+cores; FCW for all eleven takes about 40 min: a network's FCW costs 5x the HGP's):
 
   captures sweep --dataset ../shared/data/openacc-zalazone \\
       --dataset ngsim:../shared/data/ngsim-i80-pairs --workers 2 \\

@@ -42,15 +42,12 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from catc.geo import EnuFrame  # noqa: E402
-from catc.predict import available, make_predictor, prepare_at  # noqa: E402
+from catc.predict import STACKED, available, make_predictor, prepare_at  # noqa: E402
 from catc.predict.base import Observation  # noqa: E402
 from step import ORIGIN, scene  # noqa: E402
 from step import run as tick_run  # noqa: E402
 
 FEED_TICKS = 60
-# predictors whose forecasts ``prepare_at`` stacks; the others (hgp-d's per-RV GP, the
-# closed-form kinematic models) are timed by ``predict`` alone
-STACKED = ("ae", "ae-d", "lstm", "lstm-d", "hgp")
 
 
 def fed(name: str, data, frame: EnuFrame, n: int) -> tuple[list, float]:

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from catc.predict.base import Observation
-from catc.predict.nn import NN_NAMES, Network, NnConfig, reference, roll, to_forecast, window
+from catc.predict.nn import NN_NAMES, Network, NnConfig, roll, to_forecast, window
 from tests.conftest import shared_path
 
 torch = pytest.importorskip("torch", reason="the nn extra (PyTorch) is not installed")
@@ -80,6 +80,15 @@ def test_direct_forecast_rotates_back_and_derives_speed() -> None:
     np.testing.assert_allclose(f.y, 2.0 + 1.5 * np.arange(n + 1), atol=1e-9)
     np.testing.assert_allclose(f.speed, 15.0, atol=1e-9)
     np.testing.assert_allclose(f.heading % 360.0, 0.0, atol=1e-9)
+
+
+def reference(series: np.ndarray, direct: bool) -> np.ndarray:
+    """What is subtracted from each row to put a window in the frame of its last row: the
+    whole position (direct), the heading alone (indirect; speed stays absolute)."""
+    ref = series[..., -1, :].copy()
+    if not direct:
+        ref[..., 0] = 0.0
+    return ref
 
 
 @pytest.mark.parametrize("name", NN_NAMES)
@@ -157,6 +166,17 @@ def test_forecasts_grow_by_doubling_and_keep_their_first_states() -> None:
     end = _feed(q)
     q.predict(end + 0.1)
     assert q._forecast.end == pytest.approx(3.0)
+
+
+def test_prepare_stacks_exactly_the_predictors_it_says() -> None:
+    """catc.predict.STACKED (which the sweep's lockstep replay uses to skip the call) names
+    every predictor for which prepare_at makes forecasts, and no other."""
+    from catc.predict import NAMES, STACKED, make_predictor, prepare_at
+
+    for name in NAMES:
+        p = make_predictor(name)
+        end = _feed(p)
+        assert (prepare_at([(p, end + 1.0)]) > 0) == (name in STACKED), name
 
 
 def test_too_few_bsms_is_constant_speed_and_a_fresh_bsm_is_itself() -> None:

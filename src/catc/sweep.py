@@ -173,7 +173,7 @@ def lockstep_errors(tracks: Sequence[tuple[str, Track]], predictor: str, cell: C
     each vehicle (float32) and the (sent, dropped) counts."""
     from catc.channel import sent_indices
     from catc.evaluate import observations
-    from catc.predict import make_predictor, prepare_at
+    from catc.predict import STACKED, make_predictor, prepare_at
 
     models = [make_predictor(predictor) for _ in tracks]
     obs = [observations(tr) for _, tr in tracks]
@@ -183,6 +183,7 @@ def lockstep_errors(tracks: Sequence[tuple[str, Track]], predictor: str, cell: C
     errs = [np.full(len(o), np.nan) for o in obs]
     started = [False] * len(tracks)
     lengths = [len(o) for o in obs]
+    stacked = predictor in STACKED
     for k in range(max(lengths, default=0)):
         live = [i for i, n in enumerate(lengths) if k < n]
         for i in live:
@@ -190,7 +191,8 @@ def lockstep_errors(tracks: Sequence[tuple[str, Track]], predictor: str, cell: C
                 models[i].update(obs[i][k])
                 started[i] = True
         live = [i for i in live if started[i]]
-        prepare_at([(models[i], obs[i][k].t) for i in live])
+        if stacked:
+            prepare_at([(models[i], obs[i][k].t) for i in live])
         for i in live:
             o = obs[i][k]
             p = models[i].predict(o.t)

@@ -48,6 +48,8 @@ def _factories() -> dict[str, Callable[..., Predictor]]:
 
 #: Every predictor, in the order of the paper's tables: kinematic, neural, HGP.
 NAMES = ("hold", "cs", "ca", "kf", "ctrv", "ae", "ae-d", "lstm", "lstm-d", "hgp", "hgp-d")
+#: The predictors whose forecasts :func:`prepare` stacks (for the others it does nothing).
+STACKED = ("ae", "ae-d", "lstm", "lstm-d", "hgp")
 
 
 def check(name: str) -> None:
@@ -108,5 +110,5 @@ def prepare_at(items) -> int:
     return hgp.forecast_many_at(items) + nn.forecast_many_at(items)
 
 
-__all__ = ["NAMES", "Observation", "Prediction", "Predictor", "available", "check",
-           "make_predictor", "prepare", "prepare_at"]
+__all__ = ["NAMES", "STACKED", "Observation", "Prediction", "Predictor", "available",
+           "check", "make_predictor", "prepare", "prepare_at"]

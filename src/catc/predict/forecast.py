@@ -13,6 +13,7 @@ import math
 import numpy as np
 
 from catc.predict.base import Observation, Prediction
+from catc.predict.kinematic import along_heading
 
 #: The forecast grid step, s (the BSM period at 10 Hz).
 DT = 0.1
@@ -84,12 +85,10 @@ def bsm_prediction(last: Observation) -> Prediction:
 
 
 def constant_speed(last: Observation, tau: float) -> Prediction:
-    """Constant speed and heading from ``last`` for ``tau`` s (source ``"cs"``): the
-    forecasting predictors' answer while they have too few BSMs to forecast from."""
-    h = math.radians(last.heading)
-    return Prediction(last.x + last.speed * tau * math.sin(h),
-                      last.y + last.speed * tau * math.cos(h), last.speed, last.heading,
-                      source="cs")
+    """Constant speed and heading from ``last`` for ``tau`` s (source ``"cs"``, the ``cs``
+    predictor's answer): the forecasting predictors' answer while they have too few BSMs
+    to forecast from."""
+    return along_heading(last, last.speed * tau, last.speed, "cs")
 
 
 def covers(f: Forecast, tau: float, horizon_s: float) -> bool:

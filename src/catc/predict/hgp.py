@@ -81,11 +81,15 @@ from scipy.linalg import blas, cho_solve, lapack, solve_triangular
 from catc.predict import gp
 from catc.predict.bank import KernelBank, default_bank
 from catc.predict.base import Observation, Prediction
-from catc.predict.forecast import DT, constant_speed, integrate
-from catc.predict.forecast import Forecast as _Forecast
-from catc.predict.forecast import bsm_prediction as _bsm
-from catc.predict.forecast import covers as _covers
-from catc.predict.forecast import read as _read
+from catc.predict.forecast import (
+    DT,
+    Forecast,
+    bsm_prediction,
+    constant_speed,
+    covers,
+    integrate,
+    read,
+)
 from catc.predict.kinematic import elapsed
 
 
@@ -508,7 +512,7 @@ def _plausible(c: HgpConfig, lo: float, hi: float, ds: float, dh: float, vs: flo
 
 
 def _finish_stack(preds: list, mean: np.ndarray, var: np.ndarray, start: np.ndarray,
-                  grid: np.ndarray) -> list[_Forecast]:
+                  grid: np.ndarray) -> list[Forecast]:
     """Switching, integration and position variance for B forecasts of one configuration:
     ``mean`` and ``var`` (B, 2, len(grid)) of speed and heading relative to the last sample
     (both are overwritten), ``start`` (B, 4) the last speed, heading (rad), x and y.
@@ -571,7 +575,7 @@ def _finish_stack(preds: list, mean: np.ndarray, var: np.ndarray, start: np.ndar
     np.multiply(sc, sc, out=sc)
     np.multiply(sc, acc[:, 2:3], out=table[:, 4:6])
     table[:, 4:6] += acc[:, 3:4] * sc[:, ::-1]
-    return [_Forecast(grid, table[i], sources[i]) for i in range(bsz)]
+    return [Forecast(grid, table[i], sources[i]) for i in range(bsz)]
 
 
 class _BankCache:
@@ -618,7 +622,7 @@ class _WindowPredictor:
 
     def __init__(self, tw: int) -> None:
         self._obs: deque[Observation] = deque(maxlen=tw)
-        self._forecast: _Forecast | None = None
+        self._forecast: Forecast | None = None
 
     def reset(self) -> None:
         self._obs.clear()
@@ -737,13 +741,13 @@ class HgpPredictor(_WindowPredictor):
     def predict(self, t: float) -> Prediction:
         last, tau = self._since_last(t)
         if tau == 0.0:
-            return _bsm(last)
+            return bsm_prediction(last)
         if self._window_len() < self.config.min_points:
             return self._ca(last, tau)
         f = self._forecast
-        if f is None or not _covers(f, tau, self.config.horizon_s):
+        if f is None or not covers(f, tau, self.config.horizon_s):
             f = self._forecast = self._make_forecast(max(tau, 3.0))
-        return _read(f, tau)
+        return read(f, tau)
 
     def _window_len(self) -> int:
         if math.isinf(self.config.window_s):  # the default: no time cap, no per-tick scan
@@ -901,10 +905,10 @@ class HgpPredictor(_WindowPredictor):
             self._selection = _Selection(theta_s, theta_h, None,
                                          _series_consts(np.array([theta_s, theta_h]), 1, c))
 
-    def _make_forecast(self, horizon: float) -> _Forecast:
+    def _make_forecast(self, horizon: float) -> Forecast:
         return _forecast_batch([self], [_steps(horizon, self.config)])[0]
 
-    def _make_forecast_reference(self, horizon: float) -> _Forecast:
+    def _make_forecast_reference(self, horizon: float) -> Forecast:
         """The forecast by the readable formulas, selecting every time: what
         :meth:`_make_forecast` computed before it was made fast, kept as the reference the
         tests compare it with and as the "before" of ``bench/hgp_forecast.py``."""
@@ -943,7 +947,7 @@ class HgpPredictor(_WindowPredictor):
         var_along = np.concatenate(([0.0], np.cumsum(vs[1:] * DT * DT)))
         var_cross = np.concatenate(([0.0], np.cumsum(speed[1:] ** 2 * vh[1:] * DT * DT)))
         sh, ch = np.sin(head), np.cos(head)
-        return _Forecast(grid, np.array([px, py, speed, np.degrees(head) % 360.0,
+        return Forecast(grid, np.array([px, py, speed, np.degrees(head) % 360.0,
                                          var_along * sh**2 + var_cross * ch**2,
                                          var_along * ch**2 + var_cross * sh**2]), source)
 
@@ -998,7 +1002,7 @@ def _select_batch(preds: list[HgpPredictor], rels: list[np.ndarray],
                                           shared.pair(i, j))
 
 
-def _forecast_batch(preds: list[HgpPredictor], counts: list[int]) -> list[_Forecast]:
+def _forecast_batch(preds: list[HgpPredictor], counts: list[int]) -> list[Forecast]:
     """Forecasts of ``counts[i]`` points for each predictor (all on one bank and
     configuration), computed stacked; what :meth:`HgpPredictor._make_forecast_reference`
     computes, to round-off, with the selection renewed as ``reselect_every`` and
@@ -1016,7 +1020,7 @@ def _forecast_batch(preds: list[HgpPredictor], counts: list[int]) -> list[_Forec
     if c.online:
         for p, (rel, _) in zip(preds, prepared, strict=True):
             p._go_online(rel)
-    out: list[_Forecast | None] = [None] * len(preds)
+    out: list[Forecast | None] = [None] * len(preds)
     groups: dict[tuple[int, int], list[int]] = {}
     for i, ((rel, _), count) in enumerate(zip(prepared, counts, strict=True)):
         groups.setdefault((rel.shape[1], count), []).append(i)
@@ -1091,7 +1095,7 @@ def forecast_many_at(items: Iterable[tuple[object, float]]) -> int:
         if not tau > 0.0 or p._window_len() < c.min_points:
             continue
         f = p._forecast
-        if f is not None and _covers(f, tau, c.horizon_s):
+        if f is not None and covers(f, tau, c.horizon_s):
             continue
         groups.setdefault((id(c), id(p._shared)), []).append((p, _steps(max(tau, 3.0), c)))
     for group in groups.values():
@@ -1154,15 +1158,15 @@ class HgpDirectPredictor(_WindowPredictor):
     def predict(self, t: float) -> Prediction:
         last, tau = self._since_last(t)
         if tau == 0.0:
-            return _bsm(last)
+            return bsm_prediction(last)
         if len(self._obs) < self.config.min_points:
             return constant_speed(last, tau)
         f = self._forecast
-        if f is None or f.end < min(tau, self.config.horizon_s):
+        if f is None or not covers(f, tau, self.config.horizon_s):
             f = self._forecast = self._make_forecast(max(tau, 3.0))
-        return _read(f, tau)
+        return read(f, tau)
 
-    def _make_forecast(self, horizon: float) -> _Forecast:
+    def _make_forecast(self, horizon: float) -> Forecast:
         c = self.config
         last = self._obs[-1]
         tau, _, _, x, y = _window_series(self._obs)
@@ -1196,4 +1200,4 @@ class HgpDirectPredictor(_WindowPredictor):
         speed = np.hypot(velx, vely)
         heading = np.where(speed > 0.5, np.degrees(np.arctan2(velx, vely)) % 360.0,
                            last.heading)
-        return _Forecast(grid, np.array([px, py, speed, heading, vx, vy]), source)
+        return Forecast(grid, np.array([px, py, speed, heading, vx, vy]), source)

@@ -92,7 +92,7 @@ class _FromLastObservation(ABC):
         """The state ``dt >= 0`` seconds after ``obs``."""
 
 
-def _along_heading(obs: Observation, distance: float, speed: float, name: str) -> Prediction:
+def along_heading(obs: Observation, distance: float, speed: float, name: str) -> Prediction:
     """The state ``distance`` metres from ``obs`` along its heading, moving at ``speed``."""
     h = math.radians(obs.heading)
     return Prediction(obs.x + distance * math.sin(h), obs.y + distance * math.cos(h), speed,
@@ -122,7 +122,7 @@ class ConstantSpeedPredictor(_FromLastObservation):
     name = "cs"
 
     def _extrapolate(self, obs: Observation, dt: float) -> Prediction:
-        return _along_heading(obs, obs.speed * dt, obs.speed, self.name)
+        return along_heading(obs, obs.speed * dt, obs.speed, self.name)
 
 
 class ConstantAccelerationPredictor(_FromLastObservation):
@@ -139,8 +139,8 @@ class ConstantAccelerationPredictor(_FromLastObservation):
     def _extrapolate(self, obs: Observation, dt: float) -> Prediction:
         s, a = obs.speed, obs.accel
         if a < 0.0 and dt >= s / -a:
-            return _along_heading(obs, s * s / (-2.0 * a), 0.0, self.name)
-        return _along_heading(obs, s * dt + 0.5 * a * dt * dt, s + a * dt, self.name)
+            return along_heading(obs, s * s / (-2.0 * a), 0.0, self.name)
+        return along_heading(obs, s * dt + 0.5 * a * dt * dt, s + a * dt, self.name)
 
 
 class CtrvPredictor(_FromLastObservation):

@@ -147,10 +147,7 @@ def window(t: np.ndarray, x: np.ndarray, y: np.ndarray, speed: np.ndarray,
     heading.  Indirect: (speed, heading change from the last sample in rad)."""
     grid = t[-1] + (np.arange(tw) - (tw - 1)) * DT
     if direct:
-        h = math.radians(float(heading_deg[-1]))
-        sh, ch = math.sin(h), math.cos(h)
-        dx, dy = x - x[-1], y - y[-1]
-        a, b = dx * sh + dy * ch, dx * ch - dy * sh
+        a, b = heading_frame(x - x[-1], y - y[-1], float(heading_deg[-1]))
     else:
         a = speed
         b = np.unwrap(np.radians(heading_deg))
@@ -158,13 +155,13 @@ def window(t: np.ndarray, x: np.ndarray, y: np.ndarray, speed: np.ndarray,
     return np.stack([np.interp(grid, t, a), np.interp(grid, t, b)], axis=1)
 
 
-def reference(series: np.ndarray, direct: bool) -> np.ndarray:
-    """What is subtracted from each series row to put a window in the frame of its last
-    row (chained forecasts): the whole position (direct), the heading alone (indirect)."""
-    ref = series[..., -1, :].copy()
-    if not direct:
-        ref[..., 0] = 0.0
-    return ref
+def heading_frame(dx: np.ndarray, dy: np.ndarray, heading_deg: float
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """East/north offsets as (along, right) in the frame of a heading (degrees clockwise
+    from north): the direct models' series."""
+    h = math.radians(heading_deg)
+    sh, ch = math.sin(h), math.cos(h)
+    return dx * sh + dy * ch, dx * ch - dy * sh
 
 
 def to_forecast(series: np.ndarray, last: Observation, direct: bool,
@@ -404,8 +401,8 @@ def _steps(p: NnPredictor, tau: float) -> int:
 def roll(net: Network, windows: np.ndarray, steps: int) -> np.ndarray:
     """The next ``steps`` states after each window (B, tw, C), chaining the model: the
     AE one state per pass, the LSTM ``horizon`` per pass; each pass sees the last ``tw``
-    states of history and forecast, in the frame of its own last state
-    (:func:`reference`).  The chain stays in torch (float32): the AE's 30 passes for a
+    states of history and forecast, in the frame of its own last state (direct: its
+    position; indirect: its heading).  The chain stays in torch (float32): the AE's 30 passes for a
     3 s forecast cost the module calls, not numpy round trips."""
     torch = torch_module()
     c = net.config

@@ -40,12 +40,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from catc.mobility import MobilityTable, Track
-from catc.predict.forecast import DT
+from catc.predict.forecast import DT, constant_speed
 from catc.predict.nn import (
     Network,
     NnConfig,
     build,
     from_state,
+    heading_frame,
     roll,
     to_forecast,
     torch_module,
@@ -96,10 +97,8 @@ class TrainResult:
 def _series(tr: Track, direct: bool, i: int, idx: np.ndarray) -> np.ndarray:
     """The true series at sample indices ``idx`` in the frame of sample ``i``."""
     if direct:
-        h = math.radians(float(tr.heading[i]))
-        sh, ch = math.sin(h), math.cos(h)
-        dx, dy = tr.x[idx] - tr.x[i], tr.y[idx] - tr.y[i]
-        return np.stack([dx * sh + dy * ch, dx * ch - dy * sh], axis=1)
+        return np.stack(heading_frame(tr.x[idx] - tr.x[i], tr.y[idx] - tr.y[i],
+                                      float(tr.heading[i])), axis=1)
     lo, hi = min(int(idx.min()), i), max(int(idx.max()), i)
     head = np.unwrap(np.radians(tr.heading[lo:hi + 1]))
     return np.stack([tr.speed[idx], head[idx - lo] - head[i - lo]], axis=1)
@@ -207,16 +206,16 @@ def position_errors(net: Network | None, ex: Examples,
     series = roll(net, ex.x, steps) if net is not None else [None] * len(ex.x)
     err: dict[str, list[float]] = {f"{h:g}s": [] for h in horizons_s}
     for s, o, fut in zip(series, ex.origin, ex.future, strict=True):
+        last = Observation(0.0, o[0], o[1], o[2], o[3])
+        f = None if net is None else to_forecast(s, last, net.config.direct, net.config.name)
         for h in horizons_s:
             k = round(h / DT)
             if k > len(fut):
                 continue
-            if net is None:
-                rad = math.radians(o[3])
-                px, py = o[0] + o[2] * h * math.sin(rad), o[1] + o[2] * h * math.cos(rad)
+            if f is None:
+                p = constant_speed(last, h)
+                px, py = p.x, p.y
             else:
-                f = to_forecast(s, Observation(0.0, o[0], o[1], o[2], o[3]),
-                                net.config.direct, net.config.name)
                 px, py = f.x[k], f.y[k]
             err[f"{h:g}s"].append(math.hypot(px - fut[k - 1, 0], py - fut[k - 1, 1]))
     return {k: {"mean": round(float(np.mean(v)), 4), "p95": round(float(np.percentile(v, 95)), 4)}

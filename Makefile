@@ -6,7 +6,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 SHARED ?= ../shared/data
 
-.PHONY: demo test lint bench bank nn report clean install
+.PHONY: demo test test-vcan debs lint bench bank nn report clean install
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -26,9 +26,31 @@ install: $(VENV)/.installed
 demo: $(VENV)/.installed
 	$(BIN)/python -m captures.demo --data $(SHARED)
 
-test: $(VENV)/.installed-test
-	$(BIN)/ruff check src tests bench
+# The whole suite; then the SocketCAN tests (pytest -m socketcan) on real vcan: they ran
+# above where this kernel has vcan, else tools/vcanvm.py runs them in a QEMU VM booting
+# Debian's stock kernel.  Where neither works they are reported as skipped, with the reason.
+test: $(VENV)/.installed-test debs
+	$(BIN)/ruff check src tests bench tools
 	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python tools/vcanvm.py pytest --if-needed
+
+# Only the SocketCAN tests, on this kernel's vcan or in the VM.
+test-vcan: $(VENV)/.installed-test debs
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python tools/vcanvm.py pytest
+
+# Debian packages the tests need: can-utils (the independent CAN peer: candump, canplayer,
+# isotprecv), iproute2 (vcan), qemu-system-x86, busybox-static and kmod (the VM that gives
+# a kernel without SocketCAN one), tshark and openssl (the independent checks of the IEEE
+# 1609.2 frames: Wireshark's dissectors, OpenSSL's ECDSA).  Installed when missing and we
+# are root; otherwise the tests say what is missing.
+DEBS = can-utils iproute2 qemu-system-x86 busybox-static kmod tshark openssl
+debs:
+	@missing=$$(for p in $(DEBS); do dpkg -s $$p >/dev/null 2>&1 || echo $$p; done); \
+	if [ -z "$$missing" ]; then exit 0; fi; \
+	if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	  echo "debs: installing" $$missing; \
+	  apt-get update -q >/dev/null && DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends can-utils iproute2 qemu-system-x86 busybox-static kmod tshark openssl >/dev/null; \
+	else echo "debs: missing" $$missing "(not root, or no apt-get): the tests that need them say so"; fi
 
 bench: $(VENV)/.installed
 	$(BIN)/python bench/codec.py

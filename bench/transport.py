@@ -16,9 +16,14 @@ Rows:
 * ``can udp_multicast``: classic and FD between two processes (``--peer``) inside a
   network namespace this script creates and deletes (lo + an IPv4 multicast route); the
   rows are skipped with the reason when ``ip netns add`` is not permitted (not root) or
-  python-can's ``msgpack`` is missing.
+  python-can's ``msgpack`` is missing;
+* ``can socketcan``: classic and FD on a vcan interface this script creates and deletes,
+  one process.  Where the running kernel has no vcan they run inside the QEMU VM of
+  ``tools/vcanvm.py`` (``--vm-frames`` frames, default 1,000), next to a ``virtual`` FD row
+  in the same VM: under software emulation (TCG) Python runs about 20× slower, so compare
+  the VM's rows with each other, not with the host's.  The column "where" says which.
 
-    python bench/transport.py [--json] [--frames N]
+    python bench/transport.py [--json] [--frames N] [--vm-frames N]
 
 Target: 2,500 frames/s (250 RVs at 10 Hz) on CAN FD.
 """
@@ -75,17 +80,18 @@ def _row(transport: str, bus: str, fd: bool | None, n: int, got: int, seconds: f
     return row
 
 
-async def in_process(kind: str, n: int, fd: bool | None) -> dict:
+async def in_process(kind: str, n: int, fd: bool | None, interface: str = "virtual",
+                     channel: str | None = None) -> dict:
     frames = workload(n)
     if kind == "udp":
         rx = await open_receiver("udp", listen=("127.0.0.1", 0), host_listen=("127.0.0.1", 0))
         tx = await open_sender("udp", to=rx.addresses["rv"], host_to=rx.addresses["host"])
         bus = "loopback 127.0.0.1"
     else:
-        channel = f"bench-{os.getpid()}-{fd}"
-        rx = await open_receiver("can", interface="virtual", channel=channel, fd=bool(fd))
-        tx = await open_sender("can", interface="virtual", channel=channel, fd=bool(fd))
-        bus = "virtual (1 process)"
+        channel = channel or f"bench-{os.getpid()}-{fd}"
+        rx = await open_receiver("can", interface=interface, channel=channel, fd=bool(fd))
+        tx = await open_sender("can", interface=interface, channel=channel, fd=bool(fd))
+        bus = f"{interface} {'vcan ' if interface == 'socketcan' else ''}(1 process)"
     try:
         receiving = asyncio.create_task(_receive(rx, n))
         t0 = time.monotonic()
@@ -165,37 +171,82 @@ def _two_processes(netns: str, n: int, fd: bool) -> dict:
                 rx["last"] - tx["t0"], tx["stats"])
 
 
+def _vcan_rows(n: int) -> list[dict]:
+    """socketcan rows on a vcan interface of this kernel (created and deleted)."""
+    name = f"catcbench{os.getpid() % 100000}"
+    made = _ip("link", "add", "dev", name, "type", "vcan")
+    if made.returncode != 0:
+        raise RuntimeError(f"cannot create a vcan interface: {made.stderr.strip()}")
+    try:
+        up = _ip("link", "set", "dev", name, "mtu", "72", "up")
+        if up.returncode != 0:
+            raise RuntimeError(f"cannot bring {name} up: {up.stderr.strip()}")
+        return [asyncio.run(in_process("can", n, fd, "socketcan", name)) for fd in (False, True)]
+    finally:
+        _ip("link", "del", "dev", name)
+
+
+def socketcan_rows(n: int, vm_frames: int) -> tuple[list[dict], str | None]:
+    """socketcan rows here, else in the vcan VM; or no rows and the reason."""
+    try:
+        return [dict(r, where="host") for r in _vcan_rows(n)], None
+    except RuntimeError as exc:
+        reason = str(exc)
+    vm = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tools", "vcanvm.py")
+    out = subprocess.run([sys.executable, vm, "run", "--", sys.executable,
+                          os.path.abspath(__file__), "--in-vm", "--frames", str(vm_frames)],
+                         capture_output=True, text=True, timeout=1800)
+    lines = [x for x in out.stdout.splitlines() if x.startswith("[{")]
+    if out.returncode != 0 or not lines:
+        why = (out.stderr.strip().splitlines() or ["no output"])[-1]
+        return [], f"no vcan here ({reason}) and the VM failed: {why}"
+    accel = "KVM" if "(KVM)" in out.stderr else "TCG"
+    return [dict(r, where=f"VM ({accel})") for r in json.loads(lines[-1])], None
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--json", action="store_true", help="print JSON instead of a table")
     ap.add_argument("--frames", type=int, default=5000, help="frames per row (default 5000)")
     ap.add_argument("--peer", choices=("send", "recv"), help=argparse.SUPPRESS)
+    ap.add_argument("--vm-frames", type=int, default=1000,
+                    help="frames per row inside the vcan VM (default 1000)")
     ap.add_argument("--fd", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--in-vm", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.peer:
         print(json.dumps(asyncio.run(peer(args.peer, args.frames, args.fd))), flush=True)
         return 0
-    rows = [asyncio.run(in_process("udp", args.frames, None)),
-            asyncio.run(in_process("can", args.frames, False)),
-            asyncio.run(in_process("can", args.frames, True))]
+    if args.in_vm:  # the VM's rows: socketcan, and virtual FD to compare them with
+        rows = [*_vcan_rows(args.frames), asyncio.run(in_process("can", args.frames, True))]
+        print(json.dumps(rows), flush=True)
+        return 0
+    rows = [dict(asyncio.run(in_process("udp", args.frames, None)), where="host"),
+            dict(asyncio.run(in_process("can", args.frames, False)), where="host"),
+            dict(asyncio.run(in_process("can", args.frames, True)), where="host")]
     more, skipped = multicast_rows(args.frames)
-    rows += more
-    result = {"rows": rows, "skipped": skipped, "target_frames_per_s": TARGET,
+    rows += [dict(r, where="host") for r in more]
+    vcan, vcan_skipped = socketcan_rows(args.frames, args.vm_frames)
+    rows += vcan
+    result = {"rows": rows, "skipped": skipped, "socketcan_skipped": vcan_skipped,
+              "target_frames_per_s": TARGET,
               "python": platform.python_version(), "machine": platform.machine(),
               "cpus": os.cpu_count()}
     if args.json:
         print(json.dumps(result, indent=1))
         return 0
     print(f"hil.transport throughput, {args.frames} frames of 40-200 octets, saturated")
-    print(f"{'transport':>9} {'bus':<28} {'CAN':>7} {'frames/s':>9} {'received':>9} "
-          f"{'CAN frames/frame':>16}")
+    print(f"{'transport':>9} {'bus':<28} {'CAN':>7} {'where':>9} {'frames/s':>9} "
+          f"{'received':>9} {'CAN frames/frame':>16}")
     for r in rows:
         can_kind = "" if r["fd"] is None else ("FD" if r["fd"] else "classic")
         per = r.get("can_frames_per_frame", "")
-        print(f"{r['transport']:>9} {r['bus']:<28} {can_kind:>7} {r['frames_per_s']:>9.0f} "
-              f"{r['received']:>4}/{r['frames']:<4} {per:>16}")
+        print(f"{r['transport']:>9} {r['bus']:<28} {can_kind:>7} {r['where']:>9} "
+              f"{r['frames_per_s']:>9.0f} {r['received']:>4}/{r['frames']:<4} {per:>16}")
     if skipped:
         print(f"udp_multicast rows skipped: {skipped}")
+    if vcan_skipped:
+        print(f"socketcan rows skipped: {vcan_skipped}")
     return 0
 
 

@@ -82,15 +82,20 @@ def test_json_lines_append_and_flush(tmp_path):
     assert [list(json.loads(line)) for line in lines] == [["a"], ["b"], ["c"]]
 
 
-def test_asc_can_log_round_trips_through_python_can(tmp_path):
-    log = can_log(tmp_path / "frames.asc")
+def test_can_logs_round_trip_through_python_can_in_both_formats(tmp_path):
+    log = can_log(tmp_path / "frames", channel="vcan0")
     msgs = [can.Message(timestamp=10.0 + i, arbitration_id=0x6A0, data=bytes([i] * 8),
                         is_extended_id=False) for i in range(3)]
     msgs.append(can.Message(timestamp=14.0, arbitration_id=0x6A1, data=bytes(range(64)),
-                            is_fd=True, is_extended_id=False))
+                            is_fd=True, bitrate_switch=True, is_extended_id=False))
     for m in msgs:
         log.on_message_received(m)
+    log.flush()  # flushed per tick: readable while the writer is still open
+    lines = (tmp_path / "frames.log").read_text().splitlines()
+    assert lines[0] == "(10.000000) vcan0 6A0#0000000000000000 R"  # R/T: received/sent
+    assert lines[3].startswith("(14.000000) vcan0 6A1##1000102")  # FD with BRS (flags 1)
     log.stop()
-    back = list(can.ASCReader(str(tmp_path / "frames.asc")))
-    assert [(m.arbitration_id, bytes(m.data)) for m in back] == \
-        [(m.arbitration_id, bytes(m.data)) for m in msgs]
+    want = [(m.arbitration_id, bytes(m.data), m.is_fd) for m in msgs]
+    for back in (list(can.ASCReader(str(tmp_path / "frames.asc"))),
+                 list(can.CanutilsLogReader(str(tmp_path / "frames.log")))):
+        assert [(m.arbitration_id, bytes(m.data), m.is_fd) for m in back] == want

@@ -31,10 +31,10 @@ def _dataset() -> str:
     return "openacc:" + str(shared_path("openacc-zalazone", "short_setting_dynamic_part22.csv"))
 
 
-def _expected():
+def _expected(duration: float = DURATION):
     """The plan rve builds for these settings: what must arrive, by channel."""
     the_plan = plan(load_table(_dataset(), None), ChannelConfig(per=PER, burst=BURST),
-                    SEED, None, DURATION)
+                    SEED, None, duration)
     ev = the_plan.events[~the_plan.events["dropped"]]
     want_rv = sorted((temp_id(the_plan.vehicles[int(e["vehicle"])]), int(e["seq"]) % 128)
                      for e in ev if not e["host"])

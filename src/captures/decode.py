@@ -10,8 +10,10 @@ from pathlib import Path
 from catc.bsm import BSM
 from catc.errors import DecodeError
 from catc.j2735 import decode_bsm, decode_frame
-from catc.j2735.sniff import extract_frames
+from catc.j2735.sniff import as_text, extract_frames
 from catc.records import bsm_to_record
+
+from .canlog import can_log_kind, read_can_log
 
 HELP = """\
 Print every BSM in FILE as one JSON object per line, with the keys
@@ -19,10 +21,12 @@ msgCnt, id, secMark, lat, lon, elev, speed, heading, accel_long, accel_lat,
 accel_vert, yaw_rate, width, length (SI units and degrees; null = unavailable).
 
 FILE may hold raw UPER (a MessageFrame or a bare BasicSafetyMessage), hex text
-(one frame per line), IEEE 1609.2-wrapped frames, an ODE/WYDOT OBU .bin log, or
-ODE JSON/XML records that carry the frame in hex.  The kind is detected from the
-content.  A frame that does not decode is reported on stderr with its reason and
-skipped; the exit status is then 1."""
+(one frame per line), IEEE 1609.2-wrapped frames, an ODE/WYDOT OBU .bin log,
+ODE JSON/XML records that carry the frame in hex, a pcapng capture of UDP, or a
+CAN capture (candump -L log or Vector ASC: the ISO-TP transfers on every 11-bit
+identifier are reassembled).  The kind is detected from the content.  A frame
+that does not decode, or a broken ISO-TP transfer, is reported on stderr with its
+reason and skipped; the exit status is then 1."""
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -64,12 +68,22 @@ def run(args: argparse.Namespace) -> int:
     except OSError as err:
         print(f"captures decode: cannot read {args.file}: {err.strerror}", file=sys.stderr)
         return 2
+    failures = 0
     try:
-        items = extract_frames(data)
+        text = as_text(data[:4096])
+        kind = can_log_kind(text) if text is not None else None
+        if kind is not None:
+            found = read_can_log(args.file, kind)
+            items = found.frames
+            for reason, n in sorted(found.isotp_errors.items()):
+                failures += n
+                print(f"captures decode: {args.file}: {n} broken ISO-TP transfer(s): {reason}",
+                      file=sys.stderr)
+        else:
+            items = extract_frames(data)
     except DecodeError as err:
         print(f"captures decode: {args.file}: {err}", file=sys.stderr)
         return 2
-    failures = 0
     out = sys.stdout
     for index, item in enumerate(items):
         try:

@@ -19,6 +19,7 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import sys
 from collections import Counter, defaultdict
@@ -67,6 +68,13 @@ def _json(path: Path) -> dict:
 
 def _ground_truth_fcw(rve_cfg: dict) -> dict[float, bool]:
     """Tick time -> FCW holds, on the true states (PER 0, 10 Hz, no latency)."""
+    s = rve_cfg["settings"]
+    return _ground_truth_fcw_of(s["dataset"], s.get("trip"), s.get("host"), s.get("idm_host"),
+                                s.get("duration"))
+
+
+@functools.lru_cache(maxsize=8)  # captures of one run scored again (a replay, a sweep)
+def _ground_truth_fcw_of(dataset: str, trip, host, idm_host, duration) -> dict[float, bool]:
     from catc.apps import SafetyApps
     from catc.cam import CamConfig, ContextAwareMap
     from catc.channel import ChannelConfig
@@ -74,13 +82,11 @@ def _ground_truth_fcw(rve_cfg: dict) -> dict[float, bool]:
     from catc.replay import plan, simulate
     from rve.run import load_table
 
-    s = rve_cfg["settings"]
-    table = load_table(s["dataset"], s.get("trip"))
-    host = s.get("host")
-    if s.get("idm_host"):
-        table = with_synthetic_host(table, s["idm_host"], vehicle_id="idm-host")
+    table = load_table(dataset, trip)
+    if idm_host:
+        table = with_synthetic_host(table, idm_host, vehicle_id="idm-host")
         host = "idm-host"
-    the_plan = plan(table, ChannelConfig(), 0, host, s.get("duration"))
+    the_plan = plan(table, ChannelConfig(), 0, host, duration)
     cam = ContextAwareMap(CamConfig(predictor="ca"), SafetyApps())
     return {round(snap.t, 3): any(w.app == "fcw" for w in snap.warnings)
             for snap in simulate(the_plan, cam)}

@@ -10,8 +10,11 @@ but its last tick.
   microsecond timestamp), which Wireshark and tshark open.  Each datagram is wrapped in
   the IPv4/IPv6 and UDP headers it had on the wire (UDP checksum 0 for IPv4, computed
   for IPv6 where it is mandatory).
-* CAN frames go to python-can's ASC (text) log (:func:`can_log`), which is line based and
-  therefore survives a kill; BLF compresses whole blocks and would lose the tail.
+* CAN frames go to two text logs at once (:func:`can_log`, one :class:`CanLogs`): python-can's
+  ASC (Vector's format, which CANalyzer and python-can read) and the candump log format
+  (``(1700000000.123456) vcan0 6A0#0214...``, ``##<flags>`` for CAN FD) that can-utils'
+  ``canplayer``/``log2asc`` and most CAN tooling read.  Both are line based and therefore
+  survive a kill; BLF compresses whole blocks and would lose the tail.
 """
 
 from __future__ import annotations
@@ -23,7 +26,7 @@ import struct
 from pathlib import Path
 from typing import Any, BinaryIO, TextIO
 
-__all__ = ["JsonLines", "PcapngWriter", "can_log", "udp_packet", "versions"]
+__all__ = ["CanLogs", "JsonLines", "PcapngWriter", "can_log", "udp_packet", "versions"]
 
 
 def versions() -> dict[str, str]:
@@ -133,10 +136,35 @@ class PcapngWriter:
             self._f.close()
 
 
-def can_log(path: str | os.PathLike):
-    """A python-can ASC writer at ``path``: call ``on_message_received(msg)`` per frame,
-    ``file.flush()`` per tick, ``stop()`` at the end."""
+class CanLogs:
+    """Every CAN frame into several python-can writers (ASC, candump log).
+
+    ``on_message_received(msg)`` per frame (a :class:`can.Listener`'s method, so it fits the
+    CAN transport's ``on_frame``), ``flush()`` per tick, ``stop()`` at the end.
+    """
+
+    def __init__(self, writers: list[Any]) -> None:
+        self.writers = writers
+        self.frames = 0
+
+    def on_message_received(self, msg: Any) -> None:
+        for w in self.writers:
+            w.on_message_received(msg)
+        self.frames += 1
+
+    def flush(self) -> None:
+        for w in self.writers:
+            w.file.flush()
+
+    def stop(self) -> None:
+        for w in self.writers:
+            w.stop()
+
+
+def can_log(stem: str | os.PathLike, channel: str) -> CanLogs:
+    """``STEM.asc`` and ``STEM.log`` (candump -L format, frames named on ``channel``)."""
     import can
 
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    return can.ASCWriter(str(path))
+    Path(stem).parent.mkdir(parents=True, exist_ok=True)
+    return CanLogs([can.ASCWriter(f"{stem}.asc"),
+                    can.CanutilsLogWriter(f"{stem}.log", channel=channel)])

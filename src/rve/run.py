@@ -12,7 +12,8 @@ and flushed at every host tick:
 * ``rve.schedule.jsonl``: every scheduled message with its channel decision (dropped,
   cause, delay) and, when sent, the wall-clock send time and its lateness;
 * ``rve.frames.pcapng`` (UDP, with IP/UDP headers; Wireshark opens it) or
-  ``rve.frames.asc`` (every raw CAN frame, python-can ASC).
+  ``rve.frames.asc`` and ``rve.frames.log`` (every raw CAN frame, in python-can's ASC and
+  in can-utils' candump log format, which ``canplayer`` replays onto a bus).
 
 Errors: a bad dataset, flag or config file prints one line and exits 2, and so does an
 unreachable address or bus.  SIGINT and SIGTERM stop the replay, flush and exit 0.
@@ -132,6 +133,15 @@ def load_table(spec: str, trip: str | None):
                      f"{', '.join(t.name for t in tables[:10])}")
 
 
+def _can_channel(args: argparse.Namespace) -> str:
+    """The bus channel the CAN frames go out on, as the candump log names it."""
+    if args.can_channel:
+        return str(args.can_channel)
+    from hil.transport.can import DEFAULT_CHANNELS
+
+    return DEFAULT_CHANNELS.get(args.can_interface, "can0")
+
+
 class _Capture:
     """The RVE's capture files (module docstring)."""
 
@@ -142,7 +152,8 @@ class _Capture:
         self.truth = JsonLines(directory / "rve.truth.jsonl")
         self.pcap = PcapngWriter(directory / "rve.frames.pcapng") \
             if args.transport == "udp" else None
-        self.canlog = can_log(directory / "rve.frames.asc") if args.transport == "can" else None
+        self.canlog = can_log(directory / "rve.frames", _can_channel(args)) \
+            if args.transport == "can" else None
         table = the_plan.table
         config = {
             "settings": {k: (list(v) if isinstance(v, tuple) else v)
@@ -180,7 +191,7 @@ class _Capture:
         if self.pcap is not None:
             self.pcap.flush()
         if self.canlog is not None:
-            self.canlog.file.flush()
+            self.canlog.flush()
 
     def close(self) -> None:
         self.schedule.close()

@@ -86,6 +86,16 @@ def _unpack(blob: bytes) -> list[tuple[bytes, dict[str, Any]]]:
     raise DecodeError("garbage", f"unrecognised binary input; {ACCEPTED}")
 
 
+def unpack_payload(blob: bytes, carrier: str) -> list[tuple[bytes, dict[str, Any]]]:
+    """The frames in one transport payload (a UDP datagram, an ISO-TP transfer) that
+    ``carrier`` delivered; a payload of no known kind comes back whole, for the frame
+    decoder to name what is wrong with it."""
+    try:
+        return _unpack(blob)
+    except DecodeError:
+        return [(blob, {"layers": [carrier]})]
+
+
 def _hex(text: str, where: str) -> bytes:
     digits = "".join(text.split())
     if not digits or not _HEX.fullmatch(digits) or len(digits) % 2:
@@ -236,11 +246,7 @@ def _from_pcapng(data: bytes) -> list[tuple[bytes, dict[str, Any]]]:
                 udp = _udp_payload(body[20:20 + cap], linktypes[iface])
                 if udp is not None:
                     t = ts / 10.0 ** tsres[iface]
-                    try:
-                        frames = _unpack(udp[0])
-                    except DecodeError:  # let the frame decoder name what is wrong with it
-                        frames = [(udp[0], {"layers": ["udp"]})]
-                    for frame, meta in frames:
+                    for frame, meta in unpack_payload(udp[0], "udp"):
                         out.append((frame, {**meta, "packet": n, "time": t,
                                             "udp_src": udp[1], "udp_dst": udp[2]}))
             n += 1

@@ -419,3 +419,15 @@ def test_malformed_content_raises_one_line_value_error(kind, text, message):
     with pytest.raises(ValueError, match=message) as info:
         datasets.parse(kind, text, "bad")
     assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("n,window", [(3, 3), (7, 7), (11, 11), (12, 11), (500, 11), (40, 5)])
+def test_savgol_derivative_equals_scipys_savgol_filter(n, window):
+    from scipy.signal import savgol_filter
+
+    from catc.datasets.derive import savgol_derivative
+
+    values = np.cumsum(np.random.default_rng(n).normal(size=n))
+    want = savgol_filter(values, window, 2, deriv=1, delta=0.1, mode="interp")
+    np.testing.assert_allclose(savgol_derivative(values, window, 2, 0.1), want,
+                               rtol=0, atol=1e-9)

@@ -32,7 +32,6 @@ import zlib
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import gammaincc
 
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 _M1 = np.uint64(0xBF58476D1CE4E5B9)
@@ -151,6 +150,8 @@ def reception_probability(distance_m: np.ndarray, config: ChannelConfig = Channe
         - 10.0 * config.path_loss_exponent * np.log10(d)
     ratio = 10.0 ** ((config.sensitivity_dbm - mean_dbm) / 10.0)
     m = config.nakagami_m
+    from scipy.special import gammaincc  # here: scipy.special is half of the daemons' start-up
+
     return gammaincc(m, m * ratio)
 
 

@@ -1,21 +1,21 @@
 """Derived kinematics shared by the dataset readers: gaps, heading, acceleration, yaw rate.
 
 All functions take 10 Hz arrays (:data:`catc.mobility.DT`) and are vectorised numpy.
-Derivatives are Savitzky-Golay derivatives (:func:`scipy.signal.savgol_filter`: a
-quadratic least-squares fit over a centred window of :data:`WINDOW` = 11 samples (1 s),
-differentiated analytically; the first and last 5 samples use the fit over the first or
-last full window).  Relative to an ideal differentiator its gain is 0.95 at 0.2 Hz,
-0.71 (-3 dB) at 0.5 Hz and 0 at 1.3 Hz: it keeps braking and steering manoeuvres
-(seconds long) and removes GNSS sample noise and the steps of positions that were held
-or interpolated onto the 10 Hz grid.  The ``*_METHOD`` strings are the provenance
-entries of the fields these functions derive.
+Derivatives are Savitzky-Golay derivatives (what :func:`scipy.signal.savgol_filter` gives
+with ``deriv=1, mode="interp"``, computed here with numpy: scipy.signal costs the daemons
+0.7 s of start-up; a test checks the two agree): a quadratic least-squares fit over a
+centred window of :data:`WINDOW` = 11 samples (1 s), differentiated analytically; the
+first and last 5 samples use the fit over the first or last full window).  Relative to
+an ideal differentiator its gain is 0.95 at 0.2 Hz, 0.71 (-3 dB) at 0.5 Hz and 0 at
+1.3 Hz: it keeps braking and steering manoeuvres (seconds long) and removes GNSS sample
+noise and the steps of positions that were held or interpolated onto the 10 Hz grid.
+The ``*_METHOD`` strings are the provenance entries of the fields these functions derive.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import numpy.typing as npt
-from scipy.signal import savgol_filter
 
 from catc.geo import enu_heading_deg
 from catc.mobility import DT, Track
@@ -60,7 +60,31 @@ def _derivative(values: Array, window: int) -> Array:
     window = min(window, n if n % 2 else n - 1)
     if window <= POLYORDER:
         raise ValueError(f"need at least {POLYORDER + 1} samples to differentiate, got {n}")
-    return savgol_filter(values, window, POLYORDER, deriv=1, delta=DT, mode="interp")
+    return savgol_derivative(np.asarray(values, dtype=float), window, POLYORDER, DT)
+
+
+def savgol_derivative(values: Array, window: int, polyorder: int, delta: float) -> Array:
+    """``scipy.signal.savgol_filter(values, window, polyorder, deriv=1, delta=delta,
+    mode="interp")``: the slope of the least-squares polynomial of the centred window at
+    its centre, and at the edges the slope of the fit over the first or last window."""
+    half = window // 2
+    offsets = np.arange(-half, half + 1, dtype=float)
+    vander = np.vander(offsets, polyorder + 1, increasing=True)  # columns 1, k, k^2, ...
+    fit = np.linalg.pinv(vander)  # polynomial coefficients of the window's values
+    out = np.empty(len(values))
+    # interior: the linear coefficient of the centred fit, as a correlation
+    out[half:len(values) - half] = np.correlate(values, fit[1], mode="valid")
+    # edges: differentiate the polynomial of the first / last window at each edge sample
+    powers = np.arange(1, polyorder + 1)
+    n = len(values)
+
+    def slope(window_values: Array, at: Array) -> Array:
+        coef = fit @ window_values
+        return np.power.outer(at, powers - 1) @ (coef[1:] * powers)
+
+    out[:half] = slope(values[:window], offsets[:half])
+    out[n - half:] = slope(values[n - window:], offsets[half + 1:])
+    return out / delta
 
 
 def pieces(valid: npt.ArrayLike, max_gap: int = MAX_GAP) -> list[slice]:

@@ -96,7 +96,6 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from scipy.signal import savgol_filter
 
 from catc.datasets import derive
 from catc.geo import EnuFrame, wrap_deg_360
@@ -283,7 +282,7 @@ def _track_speed(x: Array, y: Array) -> Array:
     window = min(derive.WINDOW, n if n % 2 else n - 1)
     if window <= derive.POLYORDER:
         return np.full(n, np.nan)
-    ve, vn = (savgol_filter(a, window, derive.POLYORDER, deriv=1, delta=DT, mode="interp")
+    ve, vn = (derive.savgol_derivative(a, window, derive.POLYORDER, DT)
               for a in (x, y))
     return np.hypot(ve, vn)
 

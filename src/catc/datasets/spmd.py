@@ -81,7 +81,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from scipy.signal import savgol_filter
 
 from catc.datasets import derive
 from catc.geo import EnuFrame, wrap_deg_360
@@ -168,7 +167,7 @@ def _speed_from_track(x: Array, y: Array) -> Array:
     """|Savitzky-Golay velocity| of x/y as :mod:`derive` computes it (m/s)."""
     n = len(x)
     window = min(derive.WINDOW, n if n % 2 else n - 1)
-    ve, vn = (savgol_filter(a, window, derive.POLYORDER, deriv=1, delta=DT, mode="interp")
+    ve, vn = (derive.savgol_derivative(a, window, derive.POLYORDER, DT)
               for a in (x, y))
     return np.hypot(ve, vn)
 

@@ -39,6 +39,10 @@ from tests.conftest import shared_path
 
 VEC = "jpo-ode-bsm-vectors"
 
+#: Part II values with every OPTIONAL absent: SpecialVehicleExtensions (extension bit and
+#: 3 presence bits) and SupplementalVehicleExtensions (extension bit and 10 presence bits).
+EMPTY_PART2 = {1: b"\x00", 2: b"\x00\x00"}
+
 
 def frame_length(frame: bytes) -> int:
     """Octets the MessageFrame occupies (header + open type), ignoring padding after it."""
@@ -95,7 +99,7 @@ def test_xer_only_record_survives_our_encoder():
               length=e["length"],
               path_history=PathHistory(points) if points else None,
               path_prediction=PathPrediction(*e["radius"]) if e["radius"] else None,
-              part2_other=tuple((pid, b"\x00") for pid in e["part2_ids"] if pid != 0))
+              part2_other=tuple((pid, EMPTY_PART2[pid]) for pid in e["part2_ids"] if pid != 0))
     assert e["transmission"] == "unavailable"
     assert_matches_xer(decode_frame(encode_frame(bsm)), xer)
 

@@ -108,9 +108,10 @@ VSE = st.fixed_dictionaries({}, optional={
     "pathPrediction": st.fixed_dictionaries({"radiusOfCurve": st.integers(-32767, 32767),
                                              "confidence": st.integers(0, 200)}),
     "lights": bits(9),
-}).filter(lambda d: d)  # an empty VehicleSafetyExtensions is not re-sent
+})
 
-OTHER_PART2 = st.tuples(st.integers(1, 63), st.binary(min_size=1, max_size=40))
+# Ids 1 and 2 must hold their J2735 types (tests/test_uper_partii.py); others are opaque.
+OTHER_PART2 = st.tuples(st.integers(3, 63), st.binary(min_size=1, max_size=40))
 
 
 @st.composite
@@ -128,7 +129,7 @@ def oracle_bsm(draw) -> dict:
     part2 += [{"partII-Id": i, "partII-Value": v} for i, v in draw(st.lists(OTHER_PART2,
                                                                             max_size=3))]
     if part2:
-        bsm["partII"] = part2
+        bsm["partII"] = draw(st.permutations(part2))  # re-encoded in the order received
     regional = draw(st.lists(st.tuples(st.integers(0, 255), st.binary(min_size=1, max_size=20)),
                              max_size=4))
     if regional:

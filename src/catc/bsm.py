@@ -24,6 +24,11 @@ field                  unit / meaning (``None`` = unavailable or absent)
 ``width``, ``length``  metres
 ``path_history``       :class:`PathHistory` (Part II, VehicleSafetyExtensions)
 ``path_prediction``    :class:`PathPrediction` (Part II, VehicleSafetyExtensions)
+``events``             :class:`BitString` VehicleEventFlags (Part II, as above)
+``lights``             :class:`BitString` ExteriorLights (Part II, as above)
+``part2_other``        other Part II items as (partII-Id, octets of the value)
+``vse_position``       index of the VehicleSafetyExtensions among the Part II items
+                       (``None``: first, and sent only when one of its fields is set)
 =====================  ===============================================================
 
 The exact conversions, rounding and saturation rules are in :mod:`catc.units`.
@@ -199,15 +204,43 @@ class BSM:
     events: BitString | None = None
     lights: BitString | None = None
     #: Other Part II content, kept as (partII-Id, open type octets) so it is re-sent
-    #: unchanged (SpecialVehicleExtensions, SupplementalVehicleExtensions, ...).
+    #: unchanged (SpecialVehicleExtensions, SupplementalVehicleExtensions, ...), in the
+    #: order received.
     part2_other: tuple[tuple[int, bytes], ...] = field(default=())
     #: Regional extensions as (regionId, open type octets), likewise kept unchanged.
     regional: tuple[tuple[int, bytes], ...] = field(default=())
+    #: Index of the VehicleSafetyExtensions among the Part II items, counting the items
+    #: of ``part2_other`` before it.  ``None`` (the default) puts it first and sends it
+    #: only when one of its four fields is set.  The decoder sets it only when that
+    #: default would not give back what was received: a VehicleSafetyExtensions after
+    #: another item, or one with none of its fields (which is then sent empty).
+    vse_position: int | None = None
 
     @property
     def id_hex(self) -> str:
         """The TemporaryID as 8 upper-case hex digits, as logs and the ODE print it."""
         return f"{self.temp_id:08X}"
+
+    @property
+    def vse_index(self) -> int | None:
+        """Where the encoder puts the VehicleSafetyExtensions among the Part II items
+        (``None``: not sent).  A ``vse_position`` past the other items means last."""
+        if self.vse_position is not None:
+            return min(self.vse_position, len(self.part2_other))
+        if (self.events is None and self.path_history is None
+                and self.path_prediction is None and self.lights is None):
+            return None
+        return 0
+
+    @property
+    def part2_ids(self) -> tuple[int, ...]:
+        """The partII-Id of every Part II item, in the order they are sent (0 is the
+        VehicleSafetyExtensions built from the fields above)."""
+        ids = [part_id for part_id, _ in self.part2_other]
+        at = self.vse_index
+        if at is not None:
+            ids.insert(at, 0)
+        return tuple(ids)
 
 
 # --- Array form ----------------------------------------------------------------------------

@@ -2,7 +2,8 @@
 
 Only what a BasicSafetyMessage needs: constrained whole numbers, bit fields,
 the general length determinant (X.691 §11.9, unaligned variant), the normally
-small length used by extension bitmaps (§11.9.3.4), and open types (§11.2).
+small length used by extension bitmaps (§11.9.3.4), enumeration indices (§14)
+and open types (§11.2).
 
 Both classes keep the bit string in one Python ``int``.  Reading a field is a
 shift and a mask; writing is a shift and an or.  This is several times faster
@@ -46,6 +47,24 @@ class BitReader:
         if value > hi:
             raise DecodeError("out-of-range", f"{what}={value} outside {lo}..{hi}")
         return value
+
+    def enumerated(self, count: int, extensible: bool, what: str) -> int:
+        """The index of an ENUMERATED value with ``count`` root values (X.691 §14).
+
+        A constrained whole number 0..count-1, after an extension bit when the type has
+        an extension marker.  A value added in an extension (extension bit 1) is a
+        normally small number (§11.6); it is returned as ``count`` plus that number.
+        """
+        if extensible and self.read(1, what):
+            return count + self.normally_small_number(what)
+        return self.constrained(0, count - 1, (count - 1).bit_length(), what)
+
+    def normally_small_number(self, what: str) -> int:
+        """A normally small non-negative whole number (X.691 §11.6)."""
+        if self.read(1, what) == 0:
+            return self.read(6, what)
+        count = self.length(what)
+        return self.read(8 * count, what) if count else 0
 
     def length(self, what: str) -> int:
         """An unconstrained length determinant (X.691 §11.9.3.5-8, unaligned)."""

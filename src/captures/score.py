@@ -12,6 +12,10 @@
   whether an FCW warning holds; accuracy = (TP + TN) / (TP + TN + FP + FN).
 * **Counts**: messages sent and dropped by the channel (``rve.schedule.jsonl``), received
   and decoded by the OBU (``obu.rx.jsonl``), decode errors, and warning events by app.
+* **Security** (``obu run --verify log|enforce``): the IEEE 1609.2 verdict of every RV
+  frame, ``ok`` or the reason it failed (``unsigned``, ``bad-signature``,
+  ``unknown-signer``, ``expired``, ``wrong-psid``, ``stale``, ``chain``, ``unsupported``),
+  and how many were rejected (dropped under ``enforce``).
 * **Latency** from the RVE's send to the OBU's decision (the end of the tick that used the
   message), from the two processes' wall clocks on one machine.
 """
@@ -186,7 +190,10 @@ def score(directory: Path) -> dict:
     rv_sched = [r for r in schedule if r["channel"] == "rv"]
     sent = [r for r in rv_sched if not r["dropped"]]
     ok = [r for r in rx if r.get("channel") == "rv" and r.get("status") == "ok"]
-    bad = Counter(r["status"] for r in rx if r.get("status") != "ok")
+    bad = Counter(r["status"] for r in rx if r.get("status") not in ("ok", "rejected"))
+    # IEEE 1609.2 verdicts (obu run --verify): "ok" or the reason, whether the frame was
+    # dropped (enforce: status "rejected") or tracked anyway (log)
+    security = Counter(r["verdict"] for r in rx if r.get("verdict"))
     send_time = {(r["id"], r["seq"] % 128, round(r["t"] * 1000) % 60_000): r["sent_unix"]
                  for r in sent}
     lat = [r["decided_unix"] - send_time[(r["id"], r["msgCnt"], r["sec_mark"])]
@@ -201,6 +208,8 @@ def score(directory: Path) -> dict:
         "fcw": {k: conf[k] for k in ("tp", "tn", "fp", "fn")},
         "sent": len(sent), "dropped": len(rv_sched) - len(sent), "received": len(ok),
         "decode_errors": dict(bad),
+        "security": dict(security),
+        "rejected": sum(1 for r in rx if r.get("status") == "rejected"),
         "latency_ms": {"p50": round(float(np.percentile(lat_ms, 50)), 3),
                        "p99": round(float(np.percentile(lat_ms, 99)), 3),
                        "max": round(float(lat_ms.max()), 3)} if len(lat_ms) else None,
@@ -224,6 +233,10 @@ def table(r: dict) -> str:
         f"FCW accuracy {r['fcw_accuracy']}  (TP {f['tp']}, TN {f['tn']}, FP {f['fp']}, "
         f"FN {f['fn']})",
     ]
+    if r.get("security"):
+        sec = r["security"]
+        lines.append(f"IEEE 1609.2: verified {sec.get('ok', 0)}, rejected {r['rejected']}"
+                     + "".join(f", {k} {v}" for k, v in sorted(sec.items()) if k != "ok"))
     if r["latency_ms"]:
         lat = r["latency_ms"]
         lines.append(f"latency send -> decision: p50 {lat['p50']} ms, p99 {lat['p99']} ms, "

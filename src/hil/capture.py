@@ -5,11 +5,13 @@ but its last tick.
   Lines are written as they come and flushed by :meth:`JsonLines.flush`, which the daemons
   call once per tick.
 * :class:`PcapngWriter`: the UDP frames as a pcapng file (IETF draft-ietf-opsawg-pcapng:
-  one Section Header Block, one Interface Description Block of link type RAW (101, an
-  IPv4 or IPv6 header first), then one Enhanced Packet Block per datagram with a
-  microsecond timestamp), which Wireshark and tshark open.  Each datagram is wrapped in
-  the IPv4/IPv6 and UDP headers it had on the wire (UDP checksum 0 for IPv4, computed
-  for IPv6 where it is mandatory).
+  one Section Header Block, two Interface Description Blocks, of link types RAW (101, an
+  IPv4 or IPv6 header first) and ETHERNET (1), then one Enhanced Packet Block per frame
+  with a microsecond timestamp), which Wireshark and tshark open.  Each datagram is
+  wrapped in the IPv4/IPv6 and UDP headers it had on the wire, with the sending socket's
+  port and the UDP checksum; WAVE Short Messages (``rve run --framing wsmp``) are written
+  as they go over the air, in Ethernet II frames of ethertype 0x88DC (IEEE 1609.3),
+  which Wireshark dissects down to the 1609.2 signer and signature.
 * CAN frames go to two text logs at once (:func:`can_log`, one :class:`CanLogs`): python-can's
   ASC (Vector's format, which CANalyzer and python-can read) and the candump log format
   (``(1700000000.123456) vcan0 6A0#0214...``, ``##<flags>`` for CAN FD) that can-utils'
@@ -26,7 +28,8 @@ import struct
 from pathlib import Path
 from typing import Any, BinaryIO, TextIO
 
-__all__ = ["CanLogs", "JsonLines", "PcapngWriter", "can_log", "udp_packet", "versions"]
+__all__ = ["CanLogs", "JsonLines", "PcapngWriter", "can_log", "ethernet", "udp_packet",
+           "versions"]
 
 
 def versions() -> dict[str, str]:
@@ -83,7 +86,10 @@ def udp_packet(src: tuple[str, int], dst: tuple[str, int], payload: bytes) -> by
         ip = struct.pack("!BBHHHBBH4s4s", 0x45, 0, 20 + length, 0, 0x4000, 64, 17, 0,
                          s_ip.packed, d_ip.packed)
         ip = ip[:10] + struct.pack("!H", _checksum16(ip)) + ip[12:]
-        return ip + struct.pack("!HHHH", src[1], dst[1], length, 0) + payload
+        udp = struct.pack("!HHHH", src[1], dst[1], length, 0) + payload
+        pseudo = s_ip.packed + d_ip.packed + struct.pack("!xBH", 17, length)
+        csum = _checksum16(pseudo + udp) or 0xFFFF
+        return ip + udp[:6] + struct.pack("!H", csum) + udp[8:]
     if s_ip.version != 6:
         s_ip = ipaddress.ip_address("::1")
     udp = struct.pack("!HHHH", src[1], dst[1], length, 0) + payload
@@ -103,10 +109,19 @@ def _option(code: int, value: bytes) -> bytes:
     return struct.pack("<HH", code, len(value)) + value + b"\x00" * (-len(value) % 4)
 
 
+def ethernet(dst: bytes, src: bytes, ethertype: int, payload: bytes) -> bytes:
+    """An Ethernet II frame (no FCS), e.g. a WSMP frame with ethertype 0x88DC."""
+    return bytes(dst) + bytes(src) + struct.pack("!H", ethertype) + bytes(payload)
+
+
 class PcapngWriter:
-    """Append-only pcapng of raw IP packets; ``write(packet, t_unix)``, ``flush()``."""
+    """Append-only pcapng: interface 0 carries raw IP packets (link type RAW), interface 1
+    Ethernet frames (link type ETHERNET: WSMP on ethertype 0x88DC);
+    ``write(packet, t_unix, interface=0)``, ``flush()``."""
 
     LINKTYPE_RAW = 101
+    LINKTYPE_ETHERNET = 1
+    RAW, ETHERNET = 0, 1
 
     def __init__(self, path: str | os.PathLike, comment: str = "catc-hil") -> None:
         self.path = Path(path)
@@ -115,15 +130,16 @@ class PcapngWriter:
         shb = struct.pack("<IHHq", 0x1A2B3C4D, 1, 0, -1) + _option(1, comment.encode()) \
             + _option(0, b"")
         self._f.write(_block(0x0A0D0D0A, shb))
-        idb = struct.pack("<HHI", self.LINKTYPE_RAW, 0, 65535) + _option(9, b"\x06") \
-            + _option(0, b"")
-        self._f.write(_block(0x00000001, idb))
+        for linktype in (self.LINKTYPE_RAW, self.LINKTYPE_ETHERNET):
+            idb = struct.pack("<HHI", linktype, 0, 65535) + _option(9, b"\x06") \
+                + _option(0, b"")
+            self._f.write(_block(0x00000001, idb))
         self._f.flush()
         self.packets = 0
 
-    def write(self, packet: bytes, t_unix: float) -> None:
+    def write(self, packet: bytes, t_unix: float, interface: int = 0) -> None:
         us = round(t_unix * 1e6)
-        body = struct.pack("<IIIII", 0, us >> 32, us & 0xFFFFFFFF, len(packet), len(packet))
+        body = struct.pack("<IIIII", interface, us >> 32, us & 0xFFFFFFFF, len(packet), len(packet))
         self._f.write(_block(0x00000006, body + packet + b"\x00" * (-len(packet) % 4)))
         self.packets += 1
 

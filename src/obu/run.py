@@ -11,6 +11,14 @@ generated at or before ``T``; newer ones wait for a later tick.  Before stepping
 the RV channel go quiet (up to ``--collect-ms``), so frames sent just before the host's
 are in the tick, as a radio's would be within one 100 ms slot.
 
+Security (``--verify log|enforce --trust PKI_DIR|ROOT.oer``): every RV frame's IEEE 1609.2
+envelope (inside a WSMP message or not) is verified with :class:`catc.security.Verifier`
+at its receive time: signature, chain to the trusted root, psid 0x20, validity period,
+generationTime freshness.  Each verdict is counted (``verify_ok``, ``verify_<reason>``)
+and kept in the frame's ``obu.rx.jsonl`` record (``verdict``); ``enforce`` drops a frame
+that fails (status ``rejected``), ``log`` tracks it anyway.  Host frames are not verified
+(they are the host's own state, not radio traffic).
+
 Outputs:
 
 * warnings: a log line on stderr per event, and one JSON object per event on stdout
@@ -48,7 +56,7 @@ import numpy as np
 from catc.apps import SafetyApps
 from catc.cam import CamConfig, ContextAwareMap, MapSnapshot, SecMarkClock
 from catc.errors import DecodeError
-from catc.j2735 import decode_received
+from catc.j2735 import decode_frame, open_envelope
 from catc.predict import NAMES, check
 from catc.replay import split_due
 from hil.capture import JsonLines, versions
@@ -60,7 +68,7 @@ DEFAULTS = {
     "transport": "udp", "listen": ("127.0.0.1", 4500), "host_listen": ("127.0.0.1", 4501),
     "predictor": "hgp", "capture": None, "duration": None, "idle_exit": None,
     "warnings": None, "collect_ms": 5.0, "can_interface": "virtual", "can_channel": None,
-    "can_fd": False, "progress": True, "max_tracks": 1000,
+    "can_fd": False, "progress": True, "max_tracks": 1000, "verify": "off", "trust": None,
 }
 
 #: The host's BSM period: a step slower than this misses its deadline.
@@ -89,6 +97,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="python-can interface for --transport can (default virtual)")
     p.add_argument("--can-channel", metavar="NAME", help="CAN channel, e.g. vcan0")
     p.add_argument("--can-fd", action="store_true", default=None, help="CAN FD frames")
+    p.add_argument("--verify", choices=("off", "log", "enforce"),
+                   help="IEEE 1609.2 verification of the RV frames: off (default), log "
+                        "(verify and record the verdict, track every frame) or enforce "
+                        "(drop what does not verify); needs --trust")
+    p.add_argument("--trust", metavar="PATH",
+                   help="trust store for --verify: a PKI directory (rve pki init: its root "
+                        "is trusted, its AA known) or a root certificate .oer file")
     p.add_argument("--no-progress", dest="progress", action="store_false", default=None,
                    help="no status line on stderr")
 
@@ -162,6 +177,23 @@ def _track_rows(snap: MapSnapshot, sec_mark: int) -> list[dict]:
     return rows
 
 
+def _verifier(args: argparse.Namespace):
+    """The IEEE 1609.2 verifier of ``--verify log|enforce`` (None when off); ValueError
+    (one line) for a missing or unusable trust store."""
+    if args.verify in (None, "off"):
+        return None
+    if not args.trust:
+        raise ValueError(f"--verify {args.verify} needs --trust PKI_DIR or ROOT.oer")
+    from catc.security import Verifier
+    from hil.pki import trust_store
+
+    roots, cas = trust_store(args.trust)
+    try:
+        return Verifier(roots, certificates=cas)
+    except ValueError as err:
+        raise ValueError(f"--trust {args.trust}: {err}") from None
+
+
 class Obu:
     """The daemon's state: the CAM, the clock, pending messages and counters."""
 
@@ -179,6 +211,8 @@ class Obu:
         self.warn_out = (open(args.warnings, "a", encoding="utf-8")  # noqa: SIM115
                          if args.warnings else sys.stdout)
         self.origin_written = False
+        self.verifier = _verifier(args)
+        self.enforce = args.verify == "enforce"
         self.host = None  # the host frame that triggers the next tick
         self.last_frame = time.monotonic()
         self.last_rv_frame = 0.0
@@ -188,8 +222,19 @@ class Obu:
         self.counters["frames"] += 1
         self.counters[f"frames_{channel}"] += 1
         self.last_frame = time.monotonic()
+        verdict = None
         try:
-            bsm = decode_received(data)
+            frame, envelope = open_envelope(data)
+            if channel == "rv" and self.verifier is not None:
+                verdict = self.verify(envelope, rx_unix)
+                if verdict != "ok" and self.enforce:
+                    self.log(verdict, f"dropped an RV frame that does not verify: {verdict}")
+                    if self.cap is not None:
+                        self.cap.rx.write({"rx_unix": rx_unix, "channel": channel,
+                                           "octets": len(data), "status": "rejected",
+                                           "verdict": verdict, "hex": data.hex()})
+                    return
+            bsm = decode_frame(frame)
         except DecodeError as err:
             self.counters["decode_errors"] += 1
             self.counters[f"decode_{err.reason}"] += 1
@@ -202,9 +247,22 @@ class Obu:
         if channel == "rv":
             self.last_rv_frame = time.monotonic()
             self.pending.append(bsm)
-            self.pending_rx[id(bsm)] = (rx_unix, data)
+            self.pending_rx[id(bsm)] = (rx_unix, data, verdict)
             return
         self.host = bsm
+
+    def verify(self, envelope, rx_unix: float) -> str:
+        """The 1609.2 verdict of one RV frame (``ok`` or a reason), counted."""
+        from catc.security import unix_to_time64
+
+        if envelope is None:
+            reason = "unsigned"
+        else:
+            reason = self.verifier.verify(envelope, unix_to_time64(rx_unix)).reason
+        self.counters[f"verify_{reason}"] += 1
+        if reason != "ok":
+            self.counters["verify_rejected" if self.enforce else "verify_failed"] += 1
+        return reason
 
     def tick(self, host) -> MapSnapshot | None:
         """Step the CAM at host frame ``host`` (see the module docstring)."""
@@ -227,7 +285,7 @@ class Obu:
         if ms > TICK_S * 1000.0:
             self.counters["deadline_misses"] += 1
         decided = time.time()
-        received = [(m, *self.pending_rx.pop(id(m), (None, b""))) for m in due]
+        received = [(m, *self.pending_rx.pop(id(m), (None, b"", None))) for m in due]
         self._outputs(snap, host, ms, decided, received)
         return snap
 
@@ -251,11 +309,14 @@ class Obu:
             self.cap.write_config([f.lat0, f.lon0, f.h0])
             self.origin_written = True
         cap = self.cap
-        for m, rx_unix, data in received:
-            cap.rx.write({"rx_unix": rx_unix, "channel": "rv", "id": f"{m.temp_id:08X}",
-                          "msgCnt": m.msg_cnt, "sec_mark": m.sec_mark, "status": "ok",
-                          "tick": snap.t, "decided_unix": decided, "octets": len(data),
-                          "hex": data.hex()})
+        for m, rx_unix, data, verdict in received:
+            record = {"rx_unix": rx_unix, "channel": "rv", "id": f"{m.temp_id:08X}",
+                      "msgCnt": m.msg_cnt, "sec_mark": m.sec_mark, "status": "ok",
+                      "tick": snap.t, "decided_unix": decided, "octets": len(data),
+                      "hex": data.hex()}
+            if verdict is not None:
+                record["verdict"] = verdict
+            cap.rx.write(record)
         cap.ticks.write({
             "t": snap.t, "sec_mark": host.sec_mark, "host": [round(snap.host.x, 4),
                                                             round(snap.host.y, 4)],
@@ -382,7 +443,9 @@ def run(args: argparse.Namespace) -> int:
         return 2
     try:
         check(args.predictor)
-    except ValueError as err:  # a neural predictor without PyTorch or its weights
+        _verifier(args)  # the trust store, checked before anything starts
+    except ValueError as err:  # a neural predictor without PyTorch or its weights, a bad
+        # --trust (hil.pki.PkiError)
         print(f"obu run: {err}", file=sys.stderr)
         return 2
     try:

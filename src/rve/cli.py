@@ -29,7 +29,36 @@ Remote Vehicle Emulator: replays mobility logs as SAE J2735 BSM frames.
   run      replay a mobility log as BSM frames in real time over UDP or CAN, with
            scheduled dropouts, and record ground truth
   encode   turn BSM records (JSON lines) into UPER MessageFrames
-  scenario generate a built-in traffic scenario with Eclipse SUMO (FCD XML)"""
+  scenario generate a built-in traffic scenario with Eclipse SUMO (FCD XML)
+  pki      make a test IEEE 1609.2 PKI (root CA, AA, pseudonym certificates) for --sign"""
+
+PKI_HELP = """\
+pki init DIR: create a test IEEE 1609.2 PKI in DIR (a new directory): a self-signed root
+CA, an authorization CA (AA) signed by it, and one pseudonym certificate per remote
+vehicle signed by the AA (explicit certificates, ECDSA NIST P-256, psid 0x20 in
+appPermissions, valid from an hour ago for --days), each as LABEL.oer (COER) with its
+private key LABEL.key.pem (PKCS#8, mode 0600), and pki.json listing them with their
+HashedId8s.  DIR/foreign is a second PKI that nobody trusts (for attacks).
+
+  rve run --sign DIR ...        signs every RV's BSM with these pseudonyms
+  obu run --verify enforce --trust DIR ...   trusts DIR's root and knows its AA"""
+
+
+def _pki_init(args: argparse.Namespace) -> int:
+    from hil.pki import PkiError, init
+
+    try:
+        manifest = init(args.dir, args.vehicles, args.days, seed=args.seed)
+    except PkiError as err:
+        print(f"rve pki init: {err}", file=sys.stderr)
+        return 2
+    except OSError as err:
+        print(f"rve pki init: cannot write {args.dir}: {err.strerror}", file=sys.stderr)
+        return 2
+    print(json.dumps({"dir": str(args.dir), "root": manifest["certificates"]["root"],
+                      "aa": manifest["certificates"]["aa"],
+                      "pseudonyms": len(manifest["pseudonyms"])}))
+    return 0
 
 ENCODE_HELP = f"""\
 Read one BSM record per line (JSON with the keys {", ".join(KEYS)};
@@ -85,6 +114,21 @@ def main(argv: list[str] | None = None) -> int:
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     scenario.add_arguments(s)
     s.set_defaults(func=scenario.command)
+    k = sub.add_parser("pki", help="make a test IEEE 1609.2 PKI for rve run --sign",
+                       description=PKI_HELP,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    ksub = k.add_subparsers(dest="pki_command", metavar="COMMAND", required=True)
+    ki = ksub.add_parser("init", help="create a root CA, an AA and pseudonym certificates",
+                         description=PKI_HELP,
+                         formatter_class=argparse.RawDescriptionHelpFormatter)
+    ki.add_argument("dir", metavar="DIR")
+    ki.add_argument("--vehicles", type=int, default=64,
+                    help="pseudonym certificates, one per remote vehicle (default 64)")
+    ki.add_argument("--days", type=float, default=30.0,
+                    help="validity period of every certificate in days (default 30)")
+    ki.add_argument("--seed", help="derive the keys from this string (reproducible PKI; "
+                                   "for tests only)")
+    ki.set_defaults(func=_pki_init)
     return dispatch(parser, argv)
 
 

@@ -15,6 +15,11 @@ and flushed at every host tick:
   ``rve.frames.asc`` and ``rve.frames.log`` (every raw CAN frame, in python-can's ASC and
   in can-utils' candump log format, which ``canplayer`` replays onto a bus).
 
+On the wire (``--framing``): the bare UPER MessageFrame (default), an IEEE 1609.2
+``Ieee1609Dot2Data`` (``1609``; unsecured, or with ``--sign PKI_DIR`` the RVs' BSMs as
+SignedData, see :class:`Signer`), or that inside an IEEE 1609.3 WSMP message (``wsmp``;
+the pcapng capture then holds Ethernet frames of ethertype 0x88DC, as over the air).
+
 Errors: a bad dataset, flag or config file prints one line and exits 2, and so does an
 unreachable address or bus.  SIGINT and SIGTERM stop the replay, flush and exit 0.
 """
@@ -26,7 +31,6 @@ import asyncio
 import dataclasses
 import json
 import signal
-import socket
 import sys
 import time
 from collections import deque
@@ -37,9 +41,9 @@ import numpy as np
 
 from catc.channel import CAUSES, ChannelConfig
 from catc.j2735 import encode_frame
-from catc.j2735.ieee1609 import wrap_unsecured
+from catc.j2735.ieee1609 import ETHERTYPE_WSMP, wrap_unsecured, wrap_wsmp
 from catc.replay import Plan, plan, temp_id
-from hil.capture import JsonLines, PcapngWriter, can_log, udp_packet, versions
+from hil.capture import JsonLines, PcapngWriter, can_log, ethernet, udp_packet, versions
 from hil.config import address
 from hil.pacing import Pacer
 
@@ -52,7 +56,7 @@ DEFAULTS = {
     "jitter": 0.0, "seed": 0, "speed": 1.0, "asap": False, "capture": None,
     "duration": None, "host": None, "trip": None, "ieee1609": False, "distance": False,
     "can_interface": "virtual", "can_channel": None, "can_fd": False, "progress": True,
-    "idm_host": None,
+    "idm_host": None, "sign": None, "framing": None,
 }
 
 
@@ -101,7 +105,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--duration", type=float, metavar="S", help="stop after S s of data")
     p.add_argument("--capture", metavar="DIR", help="capture directory (see rve run --help)")
     p.add_argument("--ieee1609", action="store_true", default=None,
-                   help="wrap each frame in an unsecured IEEE 1609.2 envelope")
+                   help="wrap each frame in an unsecured IEEE 1609.2 envelope "
+                        "(= --framing 1609)")
+    p.add_argument("--framing", choices=("uper", "1609", "wsmp"),
+                   help="what goes on the wire: the bare UPER MessageFrame (default), an "
+                        "IEEE 1609.2 Ieee1609Dot2Data, or that inside an IEEE 1609.3 WSMP "
+                        "WAVE Short Message (PSID 0x20); --sign implies 1609")
+    p.add_argument("--sign", metavar="PKI_DIR",
+                   help="sign every RV's BSM as IEEE 1609.2 SignedData with a pseudonym "
+                        "certificate of PKI_DIR (rve pki init); the host channel stays "
+                        "unsigned")
     p.add_argument("--can-interface", choices=("socketcan", "virtual", "udp_multicast"),
                    help="python-can interface for --transport can (default virtual)")
     p.add_argument("--can-channel", metavar="NAME", help="CAN channel, e.g. vcan0")
@@ -234,10 +247,24 @@ async def _open_sender(args: argparse.Namespace, on_frame):
                              fd=bool(args.can_fd), on_frame=on_frame)
 
 
+def make_signer(args: argparse.Namespace, the_plan: Plan) -> Signer | None:
+    """The --sign PKI's signer for this plan, or None (ValueError when it does not fit)."""
+    if not args.sign:
+        return None
+    from hil.pki import load
+
+    return Signer(load(args.sign), len(the_plan.vehicles),
+                  list(the_plan.vehicles).index(the_plan.host_id))
+
+
 async def replay(args: argparse.Namespace, the_plan: Plan,
-                 lateness: list[float] | None = None) -> dict[str, int]:
+                 lateness: list[float] | None = None,
+                 signer: Signer | None = None) -> dict[str, int]:
     """Send the plan in real time (or as fast as possible); returns the counters.
-    ``lateness`` collects every sent frame's send time minus its deadline (s)."""
+    ``lateness`` collects every sent frame's send time minus its deadline (s); ``signer``
+    signs the RVs' frames (made from ``args.sign`` when not given)."""
+    framing = framing_of(args)
+    signer = signer or make_signer(args, the_plan)
     cap = _Capture(Path(args.capture), the_plan, args) if args.capture else None
     on_frame = cap.canlog.on_message_received if cap is not None and cap.canlog else None
     sender = await _open_sender(args, on_frame)
@@ -250,10 +277,10 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
     t0 = float(events["time"][0]) if len(events) else 0.0
     pacer = Pacer(t0, None if args.asap else args.speed)
     progress = _Progress(args.progress)
-    src = ("127.0.0.1", 0)
-    if args.transport == "udp" and cap is not None:
-        family = socket.AF_INET6 if ":" in args.to[0] else socket.AF_INET
-        src = ("::1" if family == socket.AF_INET6 else "127.0.0.1", 0)
+    # where each channel's datagrams come from, for the pcapng (the sockets' own ports)
+    src = dict(getattr(sender, "local", {}))
+    src.setdefault("rv", ("127.0.0.1", 0))
+    src.setdefault("host", src["rv"])
     counts = {"sent": 0, "dropped": 0, "host": 0}
     times = events["time"].tolist()
     try:
@@ -265,7 +292,8 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
                 j += 1
             batch = events[i:j]
             # Encode before the deadline, send at it, write the capture after the sends.
-            frames = [_frame(ev, the_plan, args.ieee1609) for ev in batch]
+            gen_unix = time.time() + max(0.0, pacer.deadline(due) - pacer.clock())
+            frames = [_frame(ev, the_plan, framing, signer, gen_unix) for ev in batch]
             await pacer.wait(due)
             deadline = pacer.deadline(due)
             sent_at = []
@@ -294,15 +322,81 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
         last = float(events["time"][min(i, len(events) - 1)]) if len(events) else 0.0
         progress.update(last, t0, counts["sent"], counts["dropped"], 0.0, final=True)
     counts["interrupted"] = int(stop.is_set())
+    if signer is not None:
+        counts.update(signer.counts)
     return counts
 
 
-def _frame(ev, the_plan: Plan, ieee1609: bool) -> bytes | None:
-    """The wire frame of one event (None when the channel drops it)."""
+class Signer:
+    """IEEE 1609.2 signing of the RVs' BSMs (``--sign``), one pseudonym per vehicle.
+
+    The signer is the full certificate in a vehicle's first BSM, then at least once per
+    second of data time, and in its next BSM after a vehicle it has not heard before
+    starts sending (SAE J2945/1's rule: a new neighbour may not know our certificate);
+    otherwise its HashedId8 digest.  The decisions follow the data's clock, so a run
+    repeats them exactly; generationTime is the wall-clock deadline of the frame.
+    """
+
+    CERT_PERIOD_S = 1.0
+
+    def __init__(self, pki, n_vehicles: int, host_index: int) -> None:
+        from catc.security import unix_to_time64
+
+        rvs = n_vehicles - 1
+        if len(pki.pseudonyms) < rvs:
+            raise ValueError(f"--sign {pki.directory}: {len(pki.pseudonyms)} pseudonym "
+                             f"certificates for {rvs} remote vehicles (rve pki init "
+                             f"--vehicles {rvs})")
+        self.to_time64 = unix_to_time64
+        others = [i for i in range(n_vehicles) if i != host_index]
+        self.identity = {v: pki.pseudonyms[k] for k, v in enumerate(others)}
+        self.last_cert: dict[int, float] = {}
+        self.owed: set[int] = set()
+        self.heard: set[int] = set()
+        self.counts = {"signed": 0, "with_certificate": 0}
+
+    def sign(self, vehicle: int, frame: bytes, t: float, gen_unix: float) -> bytes:
+        from catc.security import sign_bsm
+
+        if vehicle not in self.heard:  # a new sender: everybody else owes its certificate
+            self.heard.add(vehicle)
+            self.owed.update(v for v in self.identity if v != vehicle)
+        last = self.last_cert.get(vehicle)
+        full = last is None or t - last >= self.CERT_PERIOD_S - 1e-9 or vehicle in self.owed
+        if full:
+            self.last_cert[vehicle] = t
+            self.owed.discard(vehicle)
+            self.counts["with_certificate"] += 1
+        cert, key = self.identity[vehicle]
+        self.counts["signed"] += 1
+        return sign_bsm(frame, key, cert, self.to_time64(gen_unix), include_cert=full)
+
+
+def framing_of(args: argparse.Namespace) -> str:
+    """``uper``, ``1609`` or ``wsmp`` from --framing, --ieee1609 and --sign."""
+    framing = args.framing or ("1609" if args.ieee1609 or args.sign else "uper")
+    if args.sign and framing == "uper":
+        raise ValueError("--sign needs an IEEE 1609.2 envelope: --framing 1609 or wsmp")
+    return framing
+
+
+def _frame(ev, the_plan: Plan, framing: bool | str, signer: Signer | None = None,
+           gen_unix: float | None = None) -> bytes | None:
+    """The wire frame of one event (None when the channel drops it): the UPER
+    MessageFrame, in a 1609.2 envelope (signed for RVs with ``signer``) and a WSMP one as
+    ``framing`` says (True/False: 1609/uper)."""
     if ev["dropped"]:
         return None
     frame = encode_frame(the_plan.bsm(ev))
-    return wrap_unsecured(frame) if ieee1609 else frame
+    framing = {True: "1609", False: "uper"}.get(framing, framing)
+    if framing == "uper":
+        return frame
+    if signer is not None and not ev["host"]:
+        frame = signer.sign(int(ev["vehicle"]), frame, float(ev["t"]),
+                            time.time() if gen_unix is None else gen_unix)
+    else:
+        frame = wrap_unsecured(frame)
+    return wrap_wsmp(frame) if framing == "wsmp" else frame
 
 
 def _account(ev, frame, when, the_plan: Plan, args, cap, counts, tids, src,
@@ -326,7 +420,14 @@ def _account(ev, frame, when, the_plan: Plan, args, cap, counts, tids, src,
         record.update(sent_unix=when[0], late_ms=round(when[1] * 1000.0, 4),
                       octets=len(frame))
         if cap.pcap is not None:
-            cap.pcap.write(udp_packet(src, args.host_to if host else args.to, frame), when[0])
+            channel = "host" if host else "rv"
+            if framing_of(args) == "wsmp":  # as it goes over the air: Ethernet, 0x88DC
+                mac = b"\x02\x00" + tids[int(ev["vehicle"])].to_bytes(4, "big")
+                cap.pcap.write(ethernet(b"\xff" * 6, mac, ETHERTYPE_WSMP, frame), when[0],
+                               cap.pcap.ETHERNET)
+            else:
+                cap.pcap.write(udp_packet(src[channel], args.host_to if host else args.to,
+                                          frame), when[0])
     cap.schedule.write(record)
 
 
@@ -347,16 +448,21 @@ def run(args: argparse.Namespace) -> int:
         the_plan = plan(table, config, args.seed, args.host, args.duration)
         if args.speed is not None and not args.speed > 0:
             raise ValueError(f"--speed must be > 0, got {args.speed}")
-    except ValueError as err:
+        framing_of(args)
+        signer = make_signer(args, the_plan)
+    except ValueError as err:  # hil.pki.PkiError included
         print(f"rve run: {err}", file=sys.stderr)
         return 2
     try:
-        counts = asyncio.run(replay(args, the_plan))
+        counts = asyncio.run(replay(args, the_plan, signer=signer))
     except TransportError as err:
         print(f"rve run: {err}", file=sys.stderr)
         return 2
     print(json.dumps({"sent": counts["sent"], "dropped": counts["dropped"],
                       "host_frames": counts["host"], "interrupted": bool(counts["interrupted"]),
-                      "vehicles": len(the_plan.vehicles) - 1, "host": the_plan.host_id}),
+                      "vehicles": len(the_plan.vehicles) - 1, "host": the_plan.host_id,
+                      **({"signed": counts["signed"],
+                          "with_certificate": counts["with_certificate"]}
+                         if "signed" in counts else {})}),
           flush=True)
     return 0

@@ -11,14 +11,25 @@ from catc.j2735.uper import (
 )
 
 
-def decode_received(data: bytes) -> BSM:
-    """A frame as an OBU receives it: an IEEE 1609.2 envelope is removed when there is one,
-    then the UPER MessageFrame is decoded.  Raises :class:`catc.errors.DecodeError`."""
-    from catc.j2735.ieee1609 import looks_like_1609, unwrap
+def open_envelope(data: bytes):
+    """(the MessageFrame, its IEEE 1609.2 envelope or None) of a frame as an OBU receives
+    it: a WSMP WAVE Short Message (IEEE 1609.3) and an ``Ieee1609Dot2Data`` are removed
+    when present.  Raises :class:`catc.errors.DecodeError`."""
+    from catc.j2735.ieee1609 import looks_like_1609, looks_like_wsmp, unwrap, unwrap_wsmp
 
+    if looks_like_wsmp(data):
+        data, _psid = unwrap_wsmp(data)
     if looks_like_1609(data):
-        data = unwrap(data).frame
-    return decode_frame(data)
+        u = unwrap(data)
+        return u.frame, u
+    return data, None
+
+
+def decode_received(data: bytes) -> BSM:
+    """A frame as an OBU receives it: WSMP and IEEE 1609.2 envelopes are removed when
+    there are any, then the UPER MessageFrame is decoded.  Raises
+    :class:`catc.errors.DecodeError`."""
+    return decode_frame(open_envelope(data)[0])
 
 
 __all__ = [
@@ -29,4 +40,5 @@ __all__ = [
     "encode_bsm",
     "encode_frame",
     "frame_message_id",
+    "open_envelope",
 ]

@@ -1,8 +1,10 @@
 """Find the J2735 frames in a capture file of unknown format (for ``captures decode FILE``).
 
 A pcapng capture (the RVE's ``rve.frames.pcapng``, or any capture of UDP on link types
-RAW, IPv4, IPv6 or Ethernet) gives the payload of every UDP datagram, each unpacked like
-binary input below; its ``meta`` has the packet number, timestamp and UDP ports.
+RAW, IPv4, IPv6 or Ethernet, or of WSMP on Ethernet, ethertype 0x88DC) gives the payload
+of every UDP datagram or WAVE Short Message, each unpacked like binary input below; its
+``meta`` has the packet number, timestamp and UDP ports (0 for WSMP).  Binary input that
+is a WSMP message (IEEE 1609.3) is unwrapped to its payload first.
 
 Other binary input is, in this order of trial: an IEEE 1609.2 ``Ieee1609Dot2Data``
 (:mod:`catc.j2735.ieee1609`), an OBU log (:mod:`catc.j2735.obulog`), else raw UPER (a
@@ -63,6 +65,14 @@ def _security(u: ieee1609.Unwrapped) -> dict[str, Any]:
 
 def _unpack(blob: bytes) -> list[tuple[bytes, dict[str, Any]]]:
     """The frames in one binary blob, each with what its containers said."""
+    if ieee1609.looks_like_wsmp(blob):
+        try:
+            inner, psid = ieee1609.unwrap_wsmp(blob)
+        except DecodeError:
+            pass  # try the other readings
+        else:
+            return [(frame, {**meta, "layers": ["wsmp", *meta["layers"]], "wsmp_psid": psid})
+                    for frame, meta in _unpack(inner)]
     if ieee1609.looks_like_1609(blob):
         try:
             u = ieee1609.unwrap(blob)
@@ -190,6 +200,8 @@ def _udp_payload(packet: bytes, linktype: int) -> tuple[bytes, int, int] | None:
         ethertype, off = int.from_bytes(packet[12:14], "big"), 14
         if ethertype == 0x8100 and len(packet) >= 18:
             ethertype, off = int.from_bytes(packet[16:18], "big"), 18
+        if ethertype == ieee1609.ETHERTYPE_WSMP:  # WAVE Short Message over the air
+            return packet[off:], 0, 0
         if ethertype not in (0x0800, 0x86DD):
             return None
         packet = packet[off:]

@@ -70,6 +70,8 @@ class UdpSender(Sender):
     def __init__(self, streams: dict[str, asyncio_dgram.aio.DatagramClient]) -> None:
         self._streams = streams
         self._closed = False
+        #: (address, port) each channel's socket sends from, as the receiver sees it
+        self.local = {ch: tuple(s.sockname[:2]) for ch, s in streams.items()}
         self.stats = {"frames": 0, "bytes": 0, "rv": 0, "host": 0, "errors": 0}
 
     def _collect(self, stream: asyncio_dgram.aio.DatagramClient) -> None:

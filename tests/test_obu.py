@@ -160,7 +160,9 @@ def test_garbage_is_counted_and_changes_nothing(tmp_path):
     a, b = score(clean), score(dirty)
     for key in ("pte95_m", "fcw_accuracy", "fcw", "sent", "pte95_per_rv"):
         assert a[key] == b[key], key
-    assert b["received"] > a["received"]  # the decodable garbage was received too
+    # the decodable garbage was received too, as phantoms: ids that no vehicle sent
+    assert b["phantom_received"] > a["phantom_received"] == 0
+    assert b["received"] == a["received"]
 
 
 def test_can_end_to_end_on_the_virtual_bus(tmp_path):

@@ -187,9 +187,12 @@ def score(directory: Path) -> dict:
     total = sum(conf.values())
 
     # counts and latency
-    rv_sched = [r for r in schedule if r["channel"] == "rv"]
+    rv_sched = [r for r in schedule if r["channel"] == "rv" and r.get("cause") != "attack"]
     sent = [r for r in rv_sched if not r["dropped"]]
-    ok = [r for r in rx if r.get("channel") == "rv" and r.get("status") == "ok"]
+    ok_all = [r for r in rx if r.get("channel") == "rv" and r.get("status") == "ok"]
+    # the run's real vehicles, each message once (a replay attack sends some again)
+    ok = list({(r["id"], r["msgCnt"], r["sec_mark"]): r for r in ok_all
+               if r.get("id") in names}.values())
     bad = Counter(r["status"] for r in rx if r.get("status") not in ("ok", "rejected"))
     # IEEE 1609.2 verdicts (obu run --verify): "ok" or the reason, whether the frame was
     # dropped (enforce: status "rejected") or tracked anyway (log)
@@ -215,11 +218,58 @@ def score(directory: Path) -> dict:
                        "max": round(float(lat_ms.max()), 3)} if len(lat_ms) else None,
         "warnings": dict(Counter(f"{e['app']}" for e in events if e["kind"] == "start")),
         "events": events,
+        "phantom_received": len(ok_all) - len(ok),
+        "attacks": _attacks(schedule, rx, events, names),
         "ticks": len(ticks), "predictor": obu_cfg["settings"].get("predictor"),
         "per": rve_cfg["channel"]["per"], "rate_hz": rve_cfg["channel"]["rate_hz"],
         "dataset": rve_cfg["dataset"]["name"],
     }
     return result
+
+
+def _attacks(schedule: list[dict], rx: list[dict], events: list[dict],
+             names: dict[str, str]) -> dict[str, dict]:
+    """Per attack kind (``rve run --attack``): the frames the RVE sent for it, what the
+    OBU accepted (tracked) and rejected (by verdict), and the warnings raised on the ids
+    it fabricated (every one a false alarm: those vehicles do not exist)."""
+    kind_of: dict[tuple, str] = {}  # (id, msgCnt, secMark) -> kind, for the rx join
+    fabricated: dict[str, str] = {}
+    out: dict[str, dict] = {}
+    for r in schedule:
+        kind = r.get("attack")
+        if kind is None:
+            continue
+        a = out.setdefault(kind, {"sent": 0, "accepted": 0, "rejected": {}, "warnings": {}})
+        a["sent"] += not r["dropped"]
+        if r["id"] not in names:
+            fabricated[r["id"]] = kind
+        else:
+            kind_of[(r["id"], r["seq"] % 128, round(r["t"] * 1000) % 60_000)] = kind
+    if not out:
+        return {}
+    seen: set[tuple] = set()
+    for r in rx:
+        if r.get("channel") != "rv" or "id" not in r:
+            continue
+        kind = fabricated.get(r["id"]) or kind_of.get((r["id"], r.get("msgCnt"),
+                                                       r.get("sec_mark")))
+        if kind is None:
+            continue
+        if r.get("status") == "ok":
+            key = (r["id"], r.get("msgCnt"), r.get("sec_mark"))
+            if kind == "replay" and key not in seen:  # the original, not the replay
+                seen.add(key)
+                continue
+            out[kind]["accepted"] += 1
+        elif r.get("status") == "rejected":
+            rej = out[kind]["rejected"]
+            rej[r["verdict"]] = rej.get(r["verdict"], 0) + 1
+    for e in events:
+        kind = fabricated.get(e["rv"])
+        if kind is not None and e["kind"] == "start":
+            w = out[kind]["warnings"]
+            w[e["app"]] = w.get(e["app"], 0) + 1
+    return out
 
 
 def table(r: dict) -> str:
@@ -241,6 +291,13 @@ def table(r: dict) -> str:
         lat = r["latency_ms"]
         lines.append(f"latency send -> decision: p50 {lat['p50']} ms, p99 {lat['p99']} ms, "
                      f"max {lat['max']} ms")
+    for kind, a in r.get("attacks", {}).items():
+        lines.append(f"attack {kind}: sent {a['sent']}, accepted {a['accepted']}, rejected "
+                     f"{sum(a['rejected'].values())}"
+                     + "".join(f" ({k} {v})" for k, v in sorted(a["rejected"].items()))
+                     + ", warnings on fabricated ids: "
+                     + (", ".join(f"{k} {v}" for k, v in sorted(a["warnings"].items()))
+                        or "none"))
     lines.append("warning events: " + (", ".join(f"{k} {v}" for k, v in
                                                  sorted(r["warnings"].items())) or "none"))
     lines.append("PTE95 per RV [m]: " + ", ".join(f"{k} {v}" for k, v in

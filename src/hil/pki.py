@@ -41,6 +41,7 @@ class LoadedPki:
     root: bytes
     aa: bytes
     pseudonyms: tuple[tuple[bytes, object], ...]  # (certificate COER, private key)
+    foreign: tuple[tuple[bytes, object], ...] = ()  # the untrusted PKI's pseudonyms
 
 
 def _write(path: Path, data: bytes, private: bool = False) -> None:
@@ -128,8 +129,9 @@ def load(directory: str | os.PathLike) -> LoadedPki:
         pseudonyms.append((cert, key))
     if not pseudonyms:
         raise PkiError(f"{d / 'pki.json'} lists no pseudonym certificates")
+    foreign = load(d / "foreign").pseudonyms if (d / "foreign" / "pki.json").exists() else ()
     return LoadedPki(d, _certificate(d / "root.oer"), _certificate(d / "aa.oer"),
-                     tuple(pseudonyms))
+                     tuple(pseudonyms), foreign)
 
 
 def trust_store(path: str | os.PathLike) -> tuple[list[bytes], list[bytes]]:

@@ -177,6 +177,16 @@ def _track_rows(snap: MapSnapshot, sec_mark: int) -> list[dict]:
     return rows
 
 
+def _claims(frame: bytes) -> dict:
+    """Who a rejected frame claims to be (id, msgCnt, secMark), for the capture; empty
+    when it does not decode."""
+    try:
+        bsm = decode_frame(frame)
+    except DecodeError:
+        return {}
+    return {"id": f"{bsm.temp_id:08X}", "msgCnt": bsm.msg_cnt, "sec_mark": bsm.sec_mark}
+
+
 def _verifier(args: argparse.Namespace):
     """The IEEE 1609.2 verifier of ``--verify log|enforce`` (None when off); ValueError
     (one line) for a missing or unusable trust store."""
@@ -232,7 +242,8 @@ class Obu:
                     if self.cap is not None:
                         self.cap.rx.write({"rx_unix": rx_unix, "channel": channel,
                                            "octets": len(data), "status": "rejected",
-                                           "verdict": verdict, "hex": data.hex()})
+                                           "verdict": verdict, **_claims(frame),
+                                           "hex": data.hex()})
                     return
             bsm = decode_frame(frame)
         except DecodeError as err:

@@ -56,7 +56,7 @@ DEFAULTS = {
     "jitter": 0.0, "seed": 0, "speed": 1.0, "asap": False, "capture": None,
     "duration": None, "host": None, "trip": None, "ieee1609": False, "distance": False,
     "can_interface": "virtual", "can_channel": None, "can_fd": False, "progress": True,
-    "idm_host": None, "sign": None, "framing": None,
+    "idm_host": None, "sign": None, "framing": None, "attack": None,
 }
 
 
@@ -115,6 +115,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="sign every RV's BSM as IEEE 1609.2 SignedData with a pseudonym "
                         "certificate of PKI_DIR (rve pki init); the host channel stays "
                         "unsigned")
+    p.add_argument("--attack", action="append", metavar="KIND[:KEY=VALUE,...]",
+                   help="add a misbehaving sender (repeatable): ghost, sudden, sybil, replay, "
+                        "offset, speed, unsigned, bad-signature, foreign-cert; each message "
+                        "is labelled in rve.schedule.jsonl (catc.attacks has the parameters)")
     p.add_argument("--can-interface", choices=("socketcan", "virtual", "udp_multicast"),
                    help="python-can interface for --transport can (default virtual)")
     p.add_argument("--can-channel", metavar="NAME", help="CAN channel, e.g. vcan0")
@@ -265,6 +269,7 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
     signs the RVs' frames (made from ``args.sign`` when not given)."""
     framing = framing_of(args)
     signer = signer or make_signer(args, the_plan)
+    attacking = _Attacking(args, the_plan, signer, framing) if args.attack else None
     cap = _Capture(Path(args.capture), the_plan, args) if args.capture else None
     on_frame = cap.canlog.on_message_received if cap is not None and cap.canlog else None
     sender = await _open_sender(args, on_frame)
@@ -293,19 +298,36 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
             batch = events[i:j]
             # Encode before the deadline, send at it, write the capture after the sends.
             gen_unix = time.time() + max(0.0, pacer.deadline(due) - pacer.clock())
-            frames = [_frame(ev, the_plan, framing, signer, gen_unix) for ev in batch]
+            encoded = [_encode(ev, the_plan, framing, signer, gen_unix,
+                               attacking.attacks if attacking else None) for ev in batch]
+            frames = [frame for frame, _ in encoded]
+            extra = attacking.frames(batch, frames, gen_unix) if attacking else []
             await pacer.wait(due)
             deadline = pacer.deadline(due)
-            sent_at = []
+
+            def stamp() -> tuple[float, float]:
+                return (time.time(), 0.0 if args.asap
+                        else max(0.0, pacer.clock() - deadline))  # noqa: B023
+
+            sent_at, extra_at = [], []
             for ev, frame in zip(batch, frames, strict=True):
+                if ev["host"] and len(extra_at) < len(extra):  # attackers before the host
+                    for attack_frame, _ in extra:
+                        await sender.send(attack_frame)
+                        extra_at.append(stamp())
                 if frame is None:
                     sent_at.append(None)
                     continue
                 await (sender.send_host(frame) if ev["host"] else sender.send(frame))
-                sent_at.append((time.time(), 0.0 if args.asap
-                                else max(0.0, pacer.clock() - deadline)))
-            for ev, frame, when in zip(batch, frames, sent_at, strict=True):
-                _account(ev, frame, when, the_plan, args, cap, counts, tids, src, lateness)
+                sent_at.append(stamp())
+            for attack_frame, _ in extra[len(extra_at):]:
+                await sender.send(attack_frame)
+                extra_at.append(stamp())
+            for ev, (frame, label), when in zip(batch, encoded, sent_at, strict=True):
+                _account(ev, frame, when, the_plan, args, cap, counts, tids, src, lateness,
+                         label)
+            for (attack_frame, record), when in zip(extra, extra_at, strict=True):
+                _account_attack(record, attack_frame, when, args, cap, src)
             progress.update(due, t0, counts["sent"], counts["dropped"],
                             max((w[1] for w in sent_at if w is not None), default=0.0))
             if cap is not None and bool(events["host"][j - 1]):
@@ -324,6 +346,8 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
     counts["interrupted"] = int(stop.is_set())
     if signer is not None:
         counts.update(signer.counts)
+    if attacking is not None:
+        counts.update(attacking.counts)
     return counts
 
 
@@ -350,24 +374,42 @@ class Signer:
         self.to_time64 = unix_to_time64
         others = [i for i in range(n_vehicles) if i != host_index]
         self.identity = {v: pki.pseudonyms[k] for k, v in enumerate(others)}
-        self.last_cert: dict[int, float] = {}
-        self.owed: set[int] = set()
-        self.heard: set[int] = set()
+        self.last_cert: dict = {}
+        self.owed: set = set()
+        self.heard: set = set()
         self.counts = {"signed": 0, "with_certificate": 0}
+        # the attackers' identities: an insider holds the PKI's first pseudonym that no RV
+        # uses; an outsider, a pseudonym of the untrusted foreign PKI
+        self.insider = pki.pseudonyms[rvs] if len(pki.pseudonyms) > rvs else None
+        self.outsider = pki.foreign[0] if pki.foreign else None
+        self.directory = pki.directory
 
-    def sign(self, vehicle: int, frame: bytes, t: float, gen_unix: float) -> bytes:
+    def attacker(self, who: str):
+        """The (certificate, key) of an ``insider`` or ``outsider`` attacker."""
+        ident = self.insider if who == "insider" else self.outsider
+        if ident is None:
+            raise ValueError(
+                f"--sign {self.directory}: no {who} identity for the attack ("
+                + ("rve pki init --vehicles N with N > the number of RVs)" if who == "insider"
+                   else "the PKI has no foreign/ directory)"))
+        return ident
+
+    def sign(self, vehicle, frame: bytes, t: float, gen_unix: float,
+             identity=None) -> bytes:
+        """``frame`` signed by ``vehicle``'s pseudonym (or ``identity``, an attacker's
+        (certificate, key), for a fabricated sender ``vehicle``)."""
         from catc.security import sign_bsm
 
         if vehicle not in self.heard:  # a new sender: everybody else owes its certificate
             self.heard.add(vehicle)
-            self.owed.update(v for v in self.identity if v != vehicle)
+            self.owed.update(v for v in self.heard if v != vehicle)
         last = self.last_cert.get(vehicle)
         full = last is None or t - last >= self.CERT_PERIOD_S - 1e-9 or vehicle in self.owed
         if full:
             self.last_cert[vehicle] = t
             self.owed.discard(vehicle)
             self.counts["with_certificate"] += 1
-        cert, key = self.identity[vehicle]
+        cert, key = identity or self.identity[vehicle]
         self.counts["signed"] += 1
         return sign_bsm(frame, key, cert, self.to_time64(gen_unix), include_cert=full)
 
@@ -385,22 +427,112 @@ def _frame(ev, the_plan: Plan, framing: bool | str, signer: Signer | None = None
     """The wire frame of one event (None when the channel drops it): the UPER
     MessageFrame, in a 1609.2 envelope (signed for RVs with ``signer``) and a WSMP one as
     ``framing`` says (True/False: 1609/uper)."""
-    if ev["dropped"]:
-        return None
-    frame = encode_frame(the_plan.bsm(ev))
-    framing = {True: "1609", False: "uper"}.get(framing, framing)
+    return _encode(ev, the_plan, framing, signer, gen_unix, None)[0]
+
+
+def _wrap(frame: bytes, framing: str, signed: bytes | None) -> bytes:
+    """A UPER frame in the envelopes of ``framing``: ``signed`` (its SignedData) or else
+    an unsecured 1609.2 envelope, then WSMP when asked for."""
     if framing == "uper":
         return frame
-    if signer is not None and not ev["host"]:
-        frame = signer.sign(int(ev["vehicle"]), frame, float(ev["t"]),
-                            time.time() if gen_unix is None else gen_unix)
-    else:
-        frame = wrap_unsecured(frame)
+    frame = signed if signed is not None else wrap_unsecured(frame)
     return wrap_wsmp(frame) if framing == "wsmp" else frame
 
 
+def _encode(ev, the_plan: Plan, framing: bool | str, signer: Signer | None,
+            gen_unix: float | None, attacks) -> tuple[bytes | None, object | None]:
+    """:func:`_frame`, with the attacks on this event's vehicle applied: (frame, the
+    :class:`catc.attacks.Attack` that changed it or None)."""
+    if ev["dropped"]:
+        return None, None
+    framing = {True: "1609", False: "uper"}.get(framing, framing)
+    bsm = the_plan.bsm(ev)
+    vehicle, t, label = int(ev["vehicle"]), float(ev["t"]), None
+    if attacks is not None and not ev["host"]:
+        bsm, label = attacks.modify(vehicle, t, bsm)
+    frame = encode_frame(bsm)
+    if framing == "uper" or signer is None or ev["host"]:
+        return _wrap(frame, framing, None), label
+    gen = time.time() if gen_unix is None else gen_unix
+    sec = attacks.security(vehicle, t) if attacks is not None else None
+    if sec is not None:
+        label = sec
+        if sec.kind == "unsigned":
+            return _wrap(frame, framing, None), label
+        if sec.kind == "foreign-cert":
+            return _wrap(frame, framing, signer.sign(("foreign", vehicle), frame, t, gen,
+                                                     signer.attacker("outsider"))), label
+        signed = signer.sign(vehicle, frame, t, gen)  # bad-signature: one bit of sSig
+        return _wrap(frame, framing, signed[:-1] + bytes([signed[-1] ^ 0x01])), label
+    return _wrap(frame, framing, signer.sign(vehicle, frame, t, gen)), label
+
+
+class _Attacking:
+    """The RVE's side of ``--attack``: fabricated and replayed frames for each batch, and
+    their schedule records."""
+
+    def __init__(self, args: argparse.Namespace, the_plan: Plan, signer: Signer | None,
+                 framing: str) -> None:
+        from catc.attacks import SECURITY, Attacks, parse
+
+        specs = [parse(text) for text in args.attack]
+        if signer is None:
+            bad = [a.kind for a in specs if a.kind in SECURITY]
+            if bad:
+                raise ValueError(f"--attack {bad[0]} needs --sign PKI_DIR")
+        else:
+            for a in specs:
+                if a.kind in ("ghost", "sudden"):
+                    signer.attacker(a["signer"])  # fail now, in one line, if it is missing
+                if a.kind == "foreign-cert":
+                    signer.attacker("outsider")
+        self.attacks = Attacks(specs, the_plan)
+        self.plan, self.signer, self.framing = the_plan, signer, framing
+        self.history: dict[int, dict] = {}  # vehicle -> {ms of t: (frame, seq)}
+        self.counts = {"attack_frames": 0}
+
+    def frames(self, batch, frames: list, gen_unix: float) -> list[tuple[bytes, dict]]:
+        """The attack frames to send with ``batch`` (after its RV frames, before the host
+        frame), each with its schedule record."""
+        out = []
+        for ev, frame in zip(batch, frames, strict=True):
+            if ev["host"]:
+                continue
+            v, t = int(ev["vehicle"]), float(ev["t"])
+            if frame is not None and any(k == v for k in self.attacks.targets.values()):
+                self.history.setdefault(v, {})[round(t * 1000)] = (frame, int(ev["seq"]))
+            for a in self.attacks.replays(v, t):
+                old = self.history.get(v, {}).get(round((t - a["delay"]) * 1000))
+                if old is not None:
+                    name = self.plan.vehicles[v]
+                    out.append((old[0], self._record(a, name, f"{temp_id(name):08X}",
+                                                     t - a["delay"], old[1])))
+        host = [ev for ev in batch if ev["host"]]
+        if host:
+            t = float(host[0]["t"])
+            for inj in self.attacks.injected(t):
+                frame = encode_frame(inj.bsm)
+                signed = None
+                if self.signer is not None and self.framing != "uper":
+                    who = inj.attack["signer"] if "signer" in inj.attack.params else "insider"
+                    signed = self.signer.sign(("attack", inj.bsm.temp_id), frame, t,
+                                              gen_unix, self.signer.attacker(who))
+                record = self._record(inj.attack, f"attack-{inj.index}",
+                                      f"{inj.bsm.temp_id:08X}", t, inj.bsm.msg_cnt)
+                out.append((_wrap(frame, self.framing, signed), record))
+        self.counts["attack_frames"] += len(out)
+        return out
+
+    @staticmethod
+    def _record(a, vehicle: str, tid: str, t: float, seq: int | None) -> dict:
+        return {"vehicle": vehicle, "id": tid, "channel": "rv", "index": -1,
+                "seq": -1 if seq is None else seq, "t": t, "dropped": False,
+                "cause": "attack", "delay": 0.0, "attack": a.kind,
+                **({"signer": a["signer"]} if "signer" in a.params else {})}
+
+
 def _account(ev, frame, when, the_plan: Plan, args, cap, counts, tids, src,
-             lateness: list[float] | None) -> None:
+             lateness: list[float] | None, attack=None) -> None:
     """Counters, lateness and capture records of one event after its batch was sent."""
     host = bool(ev["host"])
     if frame is None:
@@ -416,18 +548,38 @@ def _account(ev, frame, when, the_plan: Plan, args, cap, counts, tids, src,
               "index": int(ev["index"]), "seq": int(ev["seq"]), "t": float(ev["t"]),
               "dropped": bool(ev["dropped"]), "cause": CAUSES[int(ev["cause"])],
               "delay": None if ev["dropped"] else float(ev["delay"])}
+    if attack is not None:
+        record["attack"] = attack.kind
     if frame is not None:
         record.update(sent_unix=when[0], late_ms=round(when[1] * 1000.0, 4),
                       octets=len(frame))
         if cap.pcap is not None:
             channel = "host" if host else "rv"
-            if framing_of(args) == "wsmp":  # as it goes over the air: Ethernet, 0x88DC
-                mac = b"\x02\x00" + tids[int(ev["vehicle"])].to_bytes(4, "big")
-                cap.pcap.write(ethernet(b"\xff" * 6, mac, ETHERTYPE_WSMP, frame), when[0],
-                               cap.pcap.ETHERNET)
-            else:
-                cap.pcap.write(udp_packet(src[channel], args.host_to if host else args.to,
-                                          frame), when[0])
+            _pcap(cap, args, src, channel, tids[int(ev["vehicle"])], frame, when[0])
+    cap.schedule.write(record)
+
+
+def _pcap(cap, args, src, channel: str, tid: int, frame: bytes, t_unix: float) -> None:
+    """One sent frame into the pcapng: as a UDP datagram, or with --framing wsmp as it
+    goes over the air (Ethernet II, ethertype 0x88DC, from a MAC made of the sender's
+    TemporaryID)."""
+    if framing_of(args) == "wsmp":
+        mac = b"\x02\x00" + tid.to_bytes(4, "big")
+        cap.pcap.write(ethernet(b"\xff" * 6, mac, ETHERTYPE_WSMP, frame), t_unix,
+                       cap.pcap.ETHERNET)
+    else:
+        cap.pcap.write(udp_packet(src[channel], args.host_to if channel == "host" else args.to,
+                                  frame), t_unix)
+
+
+def _account_attack(record: dict, frame: bytes, when, args, cap, src) -> None:
+    """The schedule record (labelled with its attack) and capture of an attack frame."""
+    if cap is None:
+        return
+    record = dict(record, sent_unix=when[0], late_ms=round(when[1] * 1000.0, 4),
+                  octets=len(frame))
+    if cap.pcap is not None:
+        _pcap(cap, args, src, "rv", int(record["id"], 16), frame, when[0])
     cap.schedule.write(record)
 
 
@@ -450,6 +602,8 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"--speed must be > 0, got {args.speed}")
         framing_of(args)
         signer = make_signer(args, the_plan)
+        if args.attack:
+            _Attacking(args, the_plan, signer, framing_of(args))  # one line if it cannot be
     except ValueError as err:  # hil.pki.PkiError included
         print(f"rve run: {err}", file=sys.stderr)
         return 2
@@ -461,8 +615,7 @@ def run(args: argparse.Namespace) -> int:
     print(json.dumps({"sent": counts["sent"], "dropped": counts["dropped"],
                       "host_frames": counts["host"], "interrupted": bool(counts["interrupted"]),
                       "vehicles": len(the_plan.vehicles) - 1, "host": the_plan.host_id,
-                      **({"signed": counts["signed"],
-                          "with_certificate": counts["with_certificate"]}
-                         if "signed" in counts else {})}),
+                      **{k: counts[k] for k in ("signed", "with_certificate",
+                                                 "attack_frames") if k in counts}}),
           flush=True)
     return 0

@@ -1,0 +1,127 @@
+"""``rve run --attack``: the misbehaving senders (catc.attacks) and what the OBU makes of
+them over UDP with ``--verify enforce``.
+
+* The ghost is where the issue puts it: ``ahead`` m ahead of the host along the host's
+  own path at ``start``, with the host's speed, then braking at ``decel``.
+* Every attack frame is labelled in ``rve.schedule.jsonl`` and ``captures score``
+  accounts for it per kind.
+* Security attacks are rejected with their reason; a ghost signed by an outsider raises
+  no warning (enforce), one signed by an insider passes verification (misbehavior
+  detection is what must catch it).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from catc.attacks import KINDS, Attacks, parse
+from catc.channel import ChannelConfig
+from catc.replay import plan
+from hil.transport.udp import free_ports
+from rve.run import load_table
+from tests.test_obu import finish, rve, score, start_obu
+from tests.test_security_e2e import pki  # noqa: F401  (fixture)
+
+
+def test_parse_fills_defaults_and_names_what_is_wrong():
+    a = parse("ghost:ahead=25,signer=outsider")
+    assert a.kind == "ghost" and a["ahead"] == 25.0 and a["decel"] == 6.0
+    assert a["signer"] == "outsider" and a["start"] == 5.0 and a["duration"] == math.inf
+    assert parse("sybil:count=4")["count"] == 4
+    for bad, needle in (("teleport", "unknown kind"), ("ghost:ahead", "KEY=VALUE"),
+                        ("ghost:speed=3", "KEY=VALUE"), ("offset:dx=east", "number"),
+                        ("ghost:signer=mallory", "insider or outsider"),
+                        ("sybil:count=0", "count"), ("speed:duration=0", "duration")):
+        with pytest.raises(ValueError, match=needle):
+            parse(bad)
+    assert len(KINDS) == 9
+
+
+def _default_plan():
+    return plan(load_table("scenario:highway-braking", None), ChannelConfig(), 0, None, None)
+
+
+def test_the_ghost_is_ahead_of_the_host_on_its_path_and_brakes():
+    the_plan = _default_plan()
+    attacks = Attacks([parse("ghost:start=4,ahead=20,decel=6")], the_plan)
+    host = the_plan.table.tracks[the_plan.host_id]
+    t0 = float(the_plan.events["t"][0])
+    got = {}
+    for t in (t0 + 3.9, t0 + 4.0, t0 + 5.0, t0 + 6.0):
+        inj = attacks.injected(t)
+        got[round(t - t0, 1)] = inj
+    assert got[3.9] == []  # not yet
+    g0, g1 = (got[k][0].bsm for k in (4.0, 5.0))
+    assert g0.temp_id == g1.temp_id == Attacks.ID_BASE and g1.msg_cnt == g0.msg_cnt + 1
+    v0 = float(np.interp(t0 + 4.0, host.t, host.speed))
+    assert g0.speed == pytest.approx(v0) and g1.speed == pytest.approx(max(0, v0 - 6.0))
+    assert g0.accel_long == -6.0
+    # 20 m ahead of the host at the start, along its path (the host drives straight here)
+    from catc.geo import bearing_deg, distance_m, heading_diff_deg
+
+    hlat, hlon, hdg = (float(np.interp(t0 + 4.0, host.t, c))
+                       for c in (host.lat, host.lon, host.heading))
+    assert float(distance_m(hlat, hlon, g0.lat, g0.lon)) == pytest.approx(20.0, abs=0.5)
+    assert abs(float(heading_diff_deg(bearing_deg(hlat, hlon, g0.lat, g0.lon), hdg))) < 3.0
+    assert abs(float(heading_diff_deg(g0.heading, hdg))) < 3.0
+
+
+def test_sybil_ids_follow_their_sender_and_modifications_are_bounded():
+    the_plan = _default_plan()
+    attacks = Attacks([parse("sybil:vehicle=lead,count=3,spacing=8,start=2"),
+                       parse("offset:vehicle=lead,dy=30,start=2,duration=1")], the_plan)
+    t0 = float(the_plan.events["t"][0])
+    inj = attacks.injected(t0 + 2.0)
+    assert [i.bsm.temp_id & 0xFF for i in inj] == [1, 2, 3]
+    assert len({i.bsm.temp_id for i in inj}) == 3
+    lead = list(the_plan.vehicles).index("lead")
+    ev = next(e for e in the_plan.events if int(e["vehicle"]) == lead
+              and abs(float(e["t"]) - (t0 + 2.5)) < 1e-6)
+    bsm = the_plan.bsm(ev)
+    moved, label = attacks.modify(lead, float(ev["t"]), bsm)
+    assert label.kind == "offset" and moved.lat - bsm.lat == pytest.approx(30 / 111_320)
+    later = next(e for e in the_plan.events if int(e["vehicle"]) == lead
+                 and abs(float(e["t"]) - (t0 + 3.5)) < 1e-6)
+    assert attacks.modify(lead, float(later["t"]), the_plan.bsm(later))[1] is None
+    with pytest.raises(ValueError, match="not an RV"):
+        Attacks([parse("offset:vehicle=host")], the_plan)
+
+
+def test_attacks_over_udp_into_an_enforcing_obu(pki, tmp_path):  # noqa: F811
+    ports = free_ports()
+    obu = start_obu(tmp_path, ports, "--predictor", "ca", "--verify", "enforce",
+                    "--trust", str(pki))
+    attacks = ["ghost:start=4,duration=4,signer=outsider", "ghost:start=10,duration=3",
+               "bad-signature:start=2,duration=1", "foreign-cert:start=3,duration=1",
+               "unsigned:start=5,duration=1", "replay:start=6,duration=1,delay=2",
+               "sybil:start=2,duration=1,count=2"]
+    summary = rve(ports, "--sign", str(pki), "--per", "0", "--speed", "8", "--duration", "16",
+                  "--capture", str(tmp_path), *[x for a in attacks for x in ("--attack", a)])
+    out, _ = finish(obu)
+    assert summary["attack_frames"] > 0
+    labels = [json.loads(line).get("attack") for line in (tmp_path / "rve.schedule.jsonl").open()]
+    assert {x for x in labels if x} == {"ghost", "bad-signature", "foreign-cert", "unsigned",
+                                       "replay", "sybil"}
+    s = score(tmp_path)
+    a = s["attacks"]
+    assert a["bad-signature"]["rejected"] == {"bad-signature": a["bad-signature"]["sent"]}
+    assert a["unsigned"]["rejected"] == {"unsigned": a["unsigned"]["sent"]}
+    assert sum(a["foreign-cert"]["rejected"].values()) == a["foreign-cert"]["sent"] > 0
+    assert set(a["foreign-cert"]["rejected"]) <= {"chain", "unknown-signer"}
+    assert a["sybil"]["accepted"] == a["sybil"]["sent"] > 0  # an insider: MBD's job
+    assert a["replay"]["sent"] > 0
+    ghost = a["ghost"]  # the outsider's 40 frames rejected, the insider's 30 accepted
+    assert ghost["sent"] == 70 and ghost["accepted"] == 30
+    assert set(ghost["rejected"]) <= {"chain", "unknown-signer"}
+    warned = {json.loads(line)["rv"] for line in out.splitlines()}
+    outsider = f"{Attacks.ID_BASE:08X}"
+    insider = f"{Attacks.ID_BASE | 1 << 8:08X}"
+    assert outsider not in warned  # enforce: the forged ghost raises no warning
+    assert insider in warned  # signed by an insider it passes: misbehavior detection's case
+    # the real vehicles' messages all arrived: attacks on the security layer drop only theirs
+    assert s["received"] == s["sent"] - a["bad-signature"]["sent"] \
+        - a["foreign-cert"]["sent"] - a["unsigned"]["sent"]

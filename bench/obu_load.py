@@ -6,12 +6,30 @@ process with the given predictor.  From the OBU's own counters (printed when it 
 received at its socket against frames sent (``socket_loss``), step time p50/p99/max over
 every tick, deadline misses (steps over the 100 ms tick), and the OBU process's CPU use
 (user + system time from /proc over wall time).  The OBU writes no capture here
-(``--capture`` adds it, as a HIL run would).
+(``--capture`` adds it, as a HIL run would).  On the RVE side (this process): its CPU use
+(``time.process_time`` over wall time; it includes the pacer's last-2-ms spin) and how late
+each RV frame left against its deadline (p99 and max, as ``bench/rve_pacing.py``).  And
+what every other process on the machine used meanwhile (``other_cpu_percent``, from
+/proc/stat, in % of one core): the OBU and the RVE run at the same time as separate
+processes, so a busy machine shows up as longer ticks, a late RVE and, at worst, a backlog
+at the OBU's socket (stale verdicts, socket loss).
+
+IEEE 1609.2 (``--verify``): ``on`` makes a test PKI with a pseudonym per RV
+(``hil.pki.init`` in a temporary directory), the RVE signs every RV BSM (``rve run --sign``:
+the full certificate in a vehicle's first BSM, once a second and after a new neighbour,
+the HashedId8 digest otherwise) and the OBU runs with ``--verify enforce --trust DIR``; the
+row then shows the OBU's ``verify_ok`` and every other ``verify_<reason>`` counter and the
+RVE's signatures/s.  ``off`` is plain UPER, no 1609.2 at all (the rows before security
+existed); ``signed`` sends the signed frames to an OBU that does not verify (the cost of
+the envelope alone).  A list (``--verify off,on``, or ``both``) runs every mode for each
+cell, one after the other in the same run, and prints each mode's tick p99 and OBU CPU as a
+ratio to the ``off`` row of its cell.  ``--verify`` alone means ``on``.
 
     python bench/obu_load.py [--json] [--rvs 100,250,500] [--per 0,50] [--predictors hgp,ca]
-                             [--seconds 15] [--capture]
+                             [--seconds 15] [--capture] [--verify [off,on,signed|both]]
 
 Target (issue 6): 500 RVs with hgp at PER 50 %: no socket loss and tick p99 <= 50 ms.
+With --verify the same target holds for the verifying OBU.
 """
 
 from __future__ import annotations
@@ -28,11 +46,20 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+import numpy as np
+
 from catc.channel import ChannelConfig
 from catc.replay import plan
+from hil.pki import init as pki_init
 from hil.transport.udp import free_ports
 from rve.run import DEFAULTS, replay
 from rve_pacing import ring_table
+
+
+def machine_busy_seconds() -> float:
+    """CPU-seconds all cores have spent busy since boot (/proc/stat: all but idle, iowait)."""
+    fields = [int(v) for v in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
+    return (sum(fields[:8]) - fields[3] - fields[4]) / os.sysconf("SC_CLK_TCK")
 
 
 def cpu_seconds(pid: int) -> float:
@@ -40,14 +67,24 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def measure(n: int, per: float, predictor: str, seconds: float, capture: bool) -> dict:
+MODES = ("off", "on", "signed")
+
+
+def measure(n: int, per: float, predictor: str, seconds: float, capture: bool,
+            verify: str = "off") -> dict:
     ports = free_ports()
     with tempfile.TemporaryDirectory() as tmp:
         cmd = [sys.executable, "-m", "obu.cli", "run", "--listen", f"127.0.0.1:{ports[0]}",
                "--host-listen", f"127.0.0.1:{ports[1]}", "--predictor", predictor,
                "--idle-exit", "2", "--no-progress", "--warnings", os.devnull]
         if capture:
-            cmd += ["--capture", tmp]
+            cmd += ["--capture", str(Path(tmp) / "capture")]
+        pki_dir = None
+        if verify != "off":  # a pseudonym per RV (the ring has N RVs and the host)
+            pki_dir = Path(tmp) / "pki"
+            pki_init(pki_dir, n, 1.0, seed=f"obu-load-{n}", foreign=False)
+        if verify == "on":
+            cmd += ["--verify", "enforce", "--trust", str(pki_dir)]
         obu = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                                text=True)
         try:
@@ -55,9 +92,13 @@ def measure(n: int, per: float, predictor: str, seconds: float, capture: bool) -
             args = argparse.Namespace(**DEFAULTS)
             args.to, args.host_to = ("127.0.0.1", ports[0]), ("127.0.0.1", ports[1])
             args.progress = False
+            args.sign = str(pki_dir) if pki_dir is not None else None
             the_plan = plan(ring_table(n, seconds), ChannelConfig(per=per / 100.0), 1)
+            late: list[float] = []
             cpu0, wall0 = cpu_seconds(obu.pid), time.monotonic()
-            counts = asyncio.run(replay(args, the_plan))
+            rve_cpu0, busy0 = time.process_time(), machine_busy_seconds()
+            counts = asyncio.run(replay(args, the_plan, late))
+            rve_cpu1, busy1 = time.process_time(), machine_busy_seconds()
             cpu1, wall1 = cpu_seconds(obu.pid), time.monotonic()
             _, err = obu.communicate(timeout=120)
         finally:
@@ -69,12 +110,63 @@ def measure(n: int, per: float, predictor: str, seconds: float, capture: bool) -
     c = json.loads(lines[-1])["obu"]
     sent = counts["sent"] + counts["host"]
     got = c.get("transport_frames", 0)
-    return {"rvs": n, "per": per, "predictor": predictor,
+    wall = wall1 - wall0
+    late_ms = np.array(late) * 1e3 if late else np.zeros(1)
+    return {"rvs": n, "per": per, "predictor": predictor, "verify": verify,
             "socket_loss": sent - got, "frames_sent": sent,
             "tick_ms_p50": c.get("tick_ms_p50"), "tick_ms_p99": c.get("tick_ms_p99"),
             "tick_ms_max": c.get("tick_ms_max"), "deadline_misses": c.get("deadline_misses", 0),
             "ticks": c.get("ticks", 0),
-            "cpu_percent": round(100.0 * (cpu1 - cpu0) / (wall1 - wall0), 1)}
+            "cpu_percent": round(100.0 * (cpu1 - cpu0) / wall, 1),
+            "verify_counters": {k: v for k, v in sorted(c.items())
+                                if k.startswith("verify_")},
+            "signed": counts.get("signed", 0),
+            "signed_with_certificate": counts.get("with_certificate", 0),
+            "signed_per_s": round(counts.get("signed", 0) / wall, 1),
+            "rve_cpu_percent": round(100.0 * (rve_cpu1 - rve_cpu0) / wall, 1),
+            "rve_late_ms_p99": round(float(np.percentile(late_ms, 99)), 3),
+            "rve_late_ms_max": round(float(late_ms.max()), 3),
+            # everything else the machine ran meanwhile, in % of one core (contention)
+            # (clamped at 0: the counters tick in 1/CLK_TCK s, so a quiet machine reads ±1 tick)
+            "other_cpu_percent": max(0.0, round(100.0 * ((busy1 - busy0) - (cpu1 - cpu0)
+                                                         - (rve_cpu1 - rve_cpu0)) / wall, 1))}
+
+
+def verify_modes(spec: str) -> list[str]:
+    """The --verify modes in order: "both" is off,on; each of off, on, signed."""
+    modes = ["off", "on"] if spec == "both" else [m.strip() for m in spec.split(",")]
+    bad = [m for m in modes if m not in MODES]
+    if bad or not modes:
+        raise argparse.ArgumentTypeError(f"--verify: {', '.join(bad) or spec!r} is not one of "
+                                         f"{', '.join(MODES)} or both")
+    return list(dict.fromkeys(modes))
+
+
+def add_ratios(rows: list[dict]) -> None:
+    """Each row with verify on or signed gets its tick p99 and OBU CPU as ratios to the
+    ``off`` row of the same cell (when there is one)."""
+    off = {(r["rvs"], r["per"], r["predictor"]): r for r in rows if r["verify"] == "off"}
+    for r in rows:
+        base = off.get((r["rvs"], r["per"], r["predictor"]))
+        if r["verify"] == "off" or base is None:
+            continue
+        r["vs_off"] = {
+            "tick_p99_ratio": (round(r["tick_ms_p99"] / base["tick_ms_p99"], 2)
+                               if base["tick_ms_p99"] else None),
+            "cpu_ratio": (round(r["cpu_percent"] / base["cpu_percent"], 2)
+                          if base["cpu_percent"] else None),
+            "rve_cpu_ratio": (round(r["rve_cpu_percent"] / base["rve_cpu_percent"], 2)
+                              if base["rve_cpu_percent"] else None)}
+
+
+def _verify_cell(r: dict) -> str:
+    counters = r["verify_counters"]
+    if not counters:
+        return "-"
+    ok = counters.get("verify_ok", 0)
+    others = " ".join(f"{k.removeprefix('verify_')}={v}" for k, v in counters.items()
+                      if k != "verify_ok")
+    return f"ok={ok}" + (f" {others}" if others else "")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -85,32 +177,52 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--predictors", default="hgp,ca")
     ap.add_argument("--seconds", type=float, default=15.0, help="replay length per cell")
     ap.add_argument("--capture", action="store_true", help="the OBU also writes its capture")
+    ap.add_argument("--verify", nargs="?", const="on", default="off", type=verify_modes,
+                    metavar="MODES",
+                    help="IEEE 1609.2: on (the RVE signs, the OBU runs --verify enforce), off "
+                         "(plain UPER), signed (signed, the OBU does not verify), a list "
+                         "such as off,on, or both (= off,on); --verify alone is on; "
+                         "default off")
     args = ap.parse_args(argv)
     rows = []
     for n in (int(v) for v in args.rvs.split(",")):
         for per in (float(v) for v in args.per.split(",")):
             for p in args.predictors.split(","):
-                rows.append(measure(n, per, p, args.seconds, args.capture))
-                if not args.json:
-                    print(f"  done {n} RVs PER {per:g} % {p}", file=sys.stderr)
+                for mode in args.verify:
+                    rows.append(measure(n, per, p, args.seconds, args.capture, mode))
+                    if not args.json:
+                        print(f"  done {n} RVs PER {per:g} % {p} verify {mode}",
+                              file=sys.stderr)
+    add_ratios(rows)
     if args.json:
         print(json.dumps(rows, indent=1))
         return 0
     print("OBU under load: UDP on 127.0.0.1, 10 Hz per RV, one OBU process"
-          + (" writing its capture" if args.capture else ""))
-    print(f"{'RVs':>5} {'PER %':>6} {'predictor':>9} {'socket loss':>12} {'tick p50':>9} "
-          f"{'tick p99':>9} {'tick max':>9} {'misses':>7} {'CPU %':>6}")
+          + (" writing its capture" if args.capture else "")
+          + f", {os.cpu_count()} CPUs (other CPU %: what the rest of the machine ran meanwhile)")
+    print(f"{'RVs':>5} {'PER %':>6} {'predictor':>9} {'verify':>6} {'socket loss':>13} "
+          f"{'tick p50':>9} {'tick p99':>9} {'tick max':>9} {'misses':>7} {'CPU %':>6} "
+          f"{'p99 x':>6} {'CPU x':>6} {'RVE CPU %':>9} {'RVE late p99/max ms':>19} "
+          f"{'signed/s':>8} {'other CPU %':>11}  verdicts")
     for r in rows:
-        print(f"{r['rvs']:>5} {r['per']:>6g} {r['predictor']:>9} "
-              f"{r['socket_loss']:>5}/{r['frames_sent']:<6} {r['tick_ms_p50']:>9.1f} "
+        ratios = r.get("vs_off", {})
+        tick_x, cpu_x = ratios.get("tick_p99_ratio"), ratios.get("cpu_ratio")
+        print(f"{r['rvs']:>5} {r['per']:>6g} {r['predictor']:>9} {r['verify']:>6} "
+              f"{r['socket_loss']:>6}/{r['frames_sent']:<6} {r['tick_ms_p50']:>9.1f} "
               f"{r['tick_ms_p99']:>9.1f} {r['tick_ms_max']:>9.1f} {r['deadline_misses']:>7} "
-              f"{r['cpu_percent']:>6.1f}")
-    target = [r for r in rows if r["rvs"] == 500 and r["per"] == 50 and r["predictor"] == "hgp"]
-    if target:
-        t = target[0]
+              f"{r['cpu_percent']:>6.1f} "
+              f"{f'{tick_x:.2f}' if tick_x is not None else '-':>6} "
+              f"{f'{cpu_x:.2f}' if cpu_x is not None else '-':>6} "
+              f"{r['rve_cpu_percent']:>9.1f} "
+              f"{r['rve_late_ms_p99']:>9.2f}/{r['rve_late_ms_max']:<9.2f} "
+              f"{r['signed_per_s']:>8.0f} {r['other_cpu_percent']:>11.1f}  {_verify_cell(r)}")
+    if any("vs_off" in r for r in rows):
+        print("p99 x, CPU x: the row's tick p99 and OBU CPU over those of the verify-off row "
+              "of the same cell")
+    for t in [r for r in rows if r["rvs"] == 500 and r["per"] == 50 and r["predictor"] == "hgp"]:
         ok = t["socket_loss"] == 0 and t["tick_ms_p99"] <= 50.0
-        print(f"target: 500 RVs, hgp, PER 50 %: no socket loss and tick p99 <= 50 ms: "
-              f"{'met' if ok else 'NOT met'} (loss {t['socket_loss']}, "
+        print(f"target: 500 RVs, hgp, PER 50 %, verify {t['verify']}: no socket loss and tick "
+              f"p99 <= 50 ms: {'met' if ok else 'NOT met'} (loss {t['socket_loss']}, "
               f"p99 {t['tick_ms_p99']:.1f} ms)")
     return 0
 

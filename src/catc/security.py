@@ -139,7 +139,7 @@ def _verify_digest(key: ec.EllipticCurvePublicKey, signature: bytes | None,
     return True
 
 
-@lru_cache(maxsize=256)
+@lru_cache(maxsize=4096)  # a signer per RV: an RVE with 500 RVs signs in turn
 def _cert_hashes(cert_raw: bytes) -> tuple[bytes, bytes]:
     """(SHA-256 of the canonical certificate, its HashedId8) for a signer certificate."""
     cert, _ = parse_certificate(cert_raw)

@@ -193,7 +193,8 @@ def score(directory: Path) -> dict:
     # the run's real vehicles, each message once (a replay attack sends some again)
     ok = list({(r["id"], r["msgCnt"], r["sec_mark"]): r for r in ok_all
                if r.get("id") in names}.values())
-    bad = Counter(r["status"] for r in rx if r.get("status") not in ("ok", "rejected"))
+    bad = Counter(r["status"] for r in rx
+                  if r.get("status") not in ("ok", "rejected", "quarantined"))
     # IEEE 1609.2 verdicts (obu run --verify): "ok" or the reason, whether the frame was
     # dropped (enforce: status "rejected") or tracked anyway (log)
     security = Counter(r["verdict"] for r in rx if r.get("verdict"))
@@ -219,7 +220,7 @@ def score(directory: Path) -> dict:
         "warnings": dict(Counter(f"{e['app']}" for e in events if e["kind"] == "start")),
         "events": events,
         "phantom_received": len(ok_all) - len(ok),
-        "attacks": _attacks(schedule, rx, events, names),
+        "attacks": _attacks(schedule, rx, events, names, _mbr(directory)),
         "ticks": len(ticks), "predictor": obu_cfg["settings"].get("predictor"),
         "per": rve_cfg["channel"]["per"], "rate_hz": rve_cfg["channel"]["rate_hz"],
         "dataset": rve_cfg["dataset"]["name"],
@@ -227,11 +228,21 @@ def score(directory: Path) -> dict:
     return result
 
 
+def _mbr(directory: Path) -> list[dict] | None:
+    """The OBU's misbehavior reports (``obu run --mbd``), or None when it ran without."""
+    path = directory / "obu.mbr.jsonl"
+    return _lines(path) if path.exists() else None
+
+
 def _attacks(schedule: list[dict], rx: list[dict], events: list[dict],
-             names: dict[str, str]) -> dict[str, dict]:
+             names: dict[str, str], mbr: list[dict] | None = None) -> dict[str, dict]:
     """Per attack kind (``rve run --attack``): the frames the RVE sent for it, what the
-    OBU accepted (tracked) and rejected (by verdict), and the warnings raised on the ids
-    it fabricated (every one a false alarm: those vehicles do not exist)."""
+    OBU accepted (tracked), rejected (by verdict) and quarantined, the warnings raised on
+    the ids it fabricated (every one a false alarm: those vehicles do not exist), and with
+    misbehavior reports: detection precision and recall over the attacking ids (an id is
+    detected when a report names it as the suspect; precision counts the reports' other
+    suspects against it) and the time from the attacker's first frame to its first
+    report."""
     kind_of: dict[tuple, str] = {}  # (id, msgCnt, secMark) -> kind, for the rx join
     fabricated: dict[str, str] = {}
     out: dict[str, dict] = {}
@@ -255,7 +266,9 @@ def _attacks(schedule: list[dict], rx: list[dict], events: list[dict],
                                                        r.get("sec_mark")))
         if kind is None:
             continue
-        if r.get("status") == "ok":
+        if r.get("status") == "quarantined":
+            out[kind]["quarantined"] = out[kind].get("quarantined", 0) + 1
+        elif r.get("status") == "ok":
             key = (r["id"], r.get("msgCnt"), r.get("sec_mark"))
             if kind == "replay" and key not in seen:  # the original, not the replay
                 seen.add(key)
@@ -269,7 +282,39 @@ def _attacks(schedule: list[dict], rx: list[dict], events: list[dict],
         if kind is not None and e["kind"] == "start":
             w = out[kind]["warnings"]
             w[e["app"]] = w.get(e["app"], 0) + 1
+    if mbr is not None:
+        _detection(out, schedule, fabricated, mbr)
     return out
+
+
+def _detection(out: dict, schedule: list[dict], fabricated: dict[str, str],
+               mbr: list[dict]) -> None:
+    """Detection precision, recall and time to detect per attack kind (see _attacks)."""
+    attackers: dict[str, str] = dict(fabricated)  # id -> kind
+    first_sent: dict[str, float] = {}
+    for r in schedule:
+        if r.get("attack") in out and "sent_unix" in r:
+            if r["attack"] in ("offset", "speed", "replay"):  # a real id misbehaving
+                attackers.setdefault(r["id"], r["attack"])
+            if r["id"] in attackers and attackers[r["id"]] == r["attack"]:
+                first_sent.setdefault(r["id"], r["sent_unix"])
+    first_report: dict[str, float] = {}
+    for m in mbr:
+        first_report.setdefault(m["suspect"], m["t_unix"])
+    false_suspects = sorted(set(first_report) - set(attackers))
+    for kind, a in out.items():
+        ids = [i for i, k in attackers.items() if k == kind and i in first_sent]
+        if not ids:
+            continue
+        hit = [i for i in ids if i in first_report]
+        a["detection"] = {
+            "attackers": len(ids), "detected": len(hit),
+            "recall": round(len(hit) / len(ids), 4),
+            "precision": round(len(hit) / (len(hit) + len(false_suspects)), 4) if hit else None,
+            "time_to_detect_s": {i: round(first_report[i] - first_sent[i], 3) for i in hit},
+        }
+    out["_mbd"] = {"suspects": len(first_report), "false_suspects": false_suspects,
+                   "reports": len(mbr)}
 
 
 def table(r: dict) -> str:
@@ -292,6 +337,14 @@ def table(r: dict) -> str:
         lines.append(f"latency send -> decision: p50 {lat['p50']} ms, p99 {lat['p99']} ms, "
                      f"max {lat['max']} ms")
     for kind, a in r.get("attacks", {}).items():
+        if kind.startswith("_"):
+            continue
+        if "detection" in a:
+            d = a["detection"]
+            ttd = list(d["time_to_detect_s"].values())
+            lines.append(f"attack {kind}: detected {d['detected']}/{d['attackers']} ids "
+                         f"(recall {d['recall']}, precision {d['precision']})"
+                         + (f", time to detect {min(ttd):.2f}-{max(ttd):.2f} s" if ttd else ""))
         lines.append(f"attack {kind}: sent {a['sent']}, accepted {a['accepted']}, rejected "
                      f"{sum(a['rejected'].values())}"
                      + "".join(f" ({k} {v})" for k, v in sorted(a["rejected"].items()))

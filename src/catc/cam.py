@@ -559,6 +559,15 @@ class ContextAwareMap:
         self.counters["displaced"] += 1
         return True
 
+    def drop(self, temp_id: int) -> bool:
+        """Forget the RV ``temp_id`` now (a misbehaving sender put in quarantine): its track
+        and trail go, so it is neither predicted nor warned about; counted ``dropped`` (a
+        counter that appears on first use).  False when it was not tracked."""
+        if self._tracks.pop(temp_id, None) is None:
+            return False
+        self.counters["dropped"] = self.counters.get("dropped", 0) + 1
+        return True
+
     def _evict_stale(self, now: float) -> None:
         limit = self.config.stale_after_s
         stale = [tid for tid, tr in self._tracks.items() if now - tr.t > limit]

@@ -69,6 +69,7 @@ DEFAULTS = {
     "predictor": "hgp", "capture": None, "duration": None, "idle_exit": None,
     "warnings": None, "collect_ms": 5.0, "can_interface": "virtual", "can_channel": None,
     "can_fd": False, "progress": True, "max_tracks": 1000, "verify": "off", "trust": None,
+    "mbd": False,
 }
 
 #: The host's BSM period: a step slower than this misses its deadline.
@@ -104,6 +105,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--trust", metavar="PATH",
                    help="trust store for --verify: a PKI directory (rve pki init: its root "
                         "is trusted, its AA known) or a root certificate .oer file")
+    p.add_argument("--mbd", action="store_true", default=None,
+                   help="misbehavior detection (catc.mbd: F2MD's plausibility checks) on "
+                        "every RV frame that passes verification: detections go to "
+                        "obu.mbr.jsonl and a quarantined sender is not tracked")
     p.add_argument("--no-progress", dest="progress", action="store_false", default=None,
                    help="no status line on stderr")
 
@@ -133,6 +138,7 @@ class _Capture:
         self.ticks = JsonLines(directory / "obu.ticks.jsonl")
         self.tracks = JsonLines(directory / "obu.tracks.jsonl")
         self.events = JsonLines(directory / "obu.events.jsonl")
+        self.mbr = JsonLines(directory / "obu.mbr.jsonl") if args.mbd else None
         self.settings = {k: (list(v) if isinstance(v, tuple) else v)
                          for k, v in vars(args).items() if k not in ("func", "parser")}
         self.write_config(None)
@@ -150,12 +156,16 @@ class _Capture:
         tmp.write_text(json.dumps(counters, indent=1, sort_keys=True))
         tmp.replace(self.dir / "obu.counters.json")
 
+    def _files(self) -> list[JsonLines]:
+        return [f for f in (self.rx, self.ticks, self.tracks, self.events, self.mbr)
+                if f is not None]
+
     def flush(self) -> None:
-        for f in (self.rx, self.ticks, self.tracks, self.events):
+        for f in self._files():
             f.flush()
 
     def close(self) -> None:
-        for f in (self.rx, self.ticks, self.tracks, self.events):
+        for f in self._files():
             f.close()
 
 
@@ -222,6 +232,12 @@ class Obu:
                          if args.warnings else sys.stdout)
         self.origin_written = False
         self.verifier = _verifier(args)
+        self.mbd = None
+        if args.mbd:
+            from catc.mbd import MisbehaviorDetector
+
+            self.mbd = MisbehaviorDetector()
+        self.last_host = None  # (BSM, rx unix) of the newest host frame
         self.enforce = args.verify == "enforce"
         self.host = None  # the host frame that triggers the next tick
         self.last_frame = time.monotonic()
@@ -257,10 +273,48 @@ class Obu:
             return
         if channel == "rv":
             self.last_rv_frame = time.monotonic()
+            if self.mbd is not None and self.misbehaves(bsm, rx_unix, data):
+                return
             self.pending.append(bsm)
             self.pending_rx[id(bsm)] = (rx_unix, data, verdict)
             return
         self.host = bsm
+        self.last_host = (bsm, rx_unix)
+
+    #: A host frame older than this (s) is no position for the range and appearance
+    #: checks (catc.mbd: a stale host position gives false sudden appearances).
+    HOST_FRESH_S = 0.5
+
+    def misbehaves(self, bsm, rx_unix: float, data: bytes) -> bool:
+        """Run the misbehavior checks on one RV BSM; write a report per detection
+        (``obu.mbr.jsonl``); True (drop it, and its track) when its sender is in
+        quarantine."""
+        host = self.last_host
+        fresh = host is not None and rx_unix - host[1] <= self.HOST_FRESH_S
+        hb = host[0] if fresh else None
+        found = self.mbd.observe(bsm, rx_unix, hb.lat if hb else None, hb.lon if hb else None,
+                                 host_heading=hb.heading if hb else None)
+        for d in found:
+            self.counters[f"mbd_{d.check}"] += 1
+            if self.cap is not None and self.cap.mbr is not None:
+                self.cap.mbr.write({
+                    "t_unix": rx_unix, "reporter": f"{hb.temp_id:08X}" if hb else None,
+                    "suspect": f"{d.suspect:08X}", "check": d.check,
+                    "score": round(d.score, 4), "evidence": d.evidence,
+                    "other": None if d.other is None else f"{d.other:08X}",
+                    "msgCnt": bsm.msg_cnt, "sec_mark": bsm.sec_mark, "hex": data.hex()})
+        if not self.mbd.quarantined(bsm.temp_id, rx_unix):
+            return False
+        self.counters["mbd_quarantined"] += 1
+        self.pending = [m for m in self.pending if m.temp_id != bsm.temp_id]
+        if self.cam.drop(bsm.temp_id):
+            self.counters["mbd_tracks_dropped"] += 1
+        if self.cap is not None:
+            self.cap.rx.write({"rx_unix": rx_unix, "channel": "rv", "octets": len(data),
+                               "status": "quarantined", "id": f"{bsm.temp_id:08X}",
+                               "msgCnt": bsm.msg_cnt, "sec_mark": bsm.sec_mark,
+                               "hex": data.hex()})
+        return True
 
     def verify(self, envelope, rx_unix: float) -> str:
         """The 1609.2 verdict of one RV frame (``ok`` or a reason), counted."""

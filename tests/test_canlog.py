@@ -4,9 +4,6 @@ is counted, not decoded into garbage."""
 
 from __future__ import annotations
 
-import argparse
-import asyncio
-import contextlib
 import json
 import subprocess
 import sys
@@ -14,38 +11,13 @@ import sys
 import pytest
 
 from captures.canlog import can_log_kind, read_can_log
-from hil.transport import open_receiver
-from rve.run import DEFAULTS, replay
-from tests.test_rve_can import _expected
+from tests.test_rve_can import replay_in_process
 
 
 def _run_rve(tmp_path, fd: bool):
     """The RVE's replay on python-can's virtual bus with a capture, and what a receiver got."""
-    the_plan, _want_rv, _want_host = _expected()
-    args = argparse.Namespace(**DEFAULTS)
-    args.transport, args.can_interface, args.can_channel, args.can_fd = "can", "virtual", \
-        f"canlog-{fd}", fd
-    args.asap, args.progress, args.capture = True, False, str(tmp_path)
-
-    async def main():
-        got: list[tuple[str, bytes]] = []
-        async with await open_receiver("can", interface="virtual", channel=args.can_channel,
-                                       fd=fd) as rx:
-            async def pump():
-                while True:
-                    r = await rx.recv()
-                    got.append((r.channel, r.data))
-
-            task = asyncio.create_task(pump())
-            counts = await replay(args, the_plan)
-            with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(5):
-                    while len(got) < counts["sent"] + counts["host"]:
-                        await asyncio.sleep(0.01)
-            task.cancel()
-            return counts, got
-
-    return asyncio.run(asyncio.wait_for(main(), 120))
+    counts, got, _stats = replay_in_process("virtual", f"canlog-{fd}", fd, tmp_path)
+    return counts, got
 
 
 @pytest.mark.parametrize("fd", [False, True], ids=["classic", "fd"])

@@ -47,14 +47,16 @@ def _got(frames: list[tuple[str, bytes]]) -> tuple[list, int]:
     return rv, sum(1 for ch, _ in frames if ch == "host")
 
 
-@pytest.mark.parametrize("fd", [False, True], ids=["classic", "fd"])
-def test_rve_replay_over_a_can_bus_in_one_process(bus, fd):  # noqa: F811
-    interface, channel = bus
-    the_plan, want_rv, want_host = _expected()
+def replay_in_process(interface: str, channel: str, fd: bool, capture=None):
+    """The RVE's replay loop (the plan of :func:`_expected`, as fast as possible) on a CAN
+    bus with a receiver in this process: (counters, [(channel, frame)] received, receiver
+    stats)."""
+    the_plan = _expected()[0]
     args = argparse.Namespace(**DEFAULTS)
     args.transport, args.can_interface, args.can_channel, args.can_fd = "can", interface, \
         channel, fd
     args.asap, args.progress = True, False
+    args.capture = None if capture is None else str(capture)
 
     async def main():
         got: list[tuple[str, bytes]] = []
@@ -74,7 +76,14 @@ def test_rve_replay_over_a_can_bus_in_one_process(bus, fd):  # noqa: F811
             task.cancel()
             return counts, got, dict(rx.stats)
 
-    counts, got, stats = asyncio.run(asyncio.wait_for(main(), 120))
+    return asyncio.run(asyncio.wait_for(main(), 120))
+
+
+@pytest.mark.parametrize("fd", [False, True], ids=["classic", "fd"])
+def test_rve_replay_over_a_can_bus_in_one_process(bus, fd):  # noqa: F811
+    interface, channel = bus
+    _the_plan, want_rv, want_host = _expected()
+    counts, got, stats = replay_in_process(interface, channel, fd)
     rv, host = _got(got)
     assert rv == want_rv and host == want_host
     assert counts["sent"] == len(want_rv) and counts["dropped"] > 0

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import random
 import re
 import shutil
 import socket
@@ -280,3 +281,68 @@ def test_tshark_sees_real_udp_ports_and_good_checksums(tmp_path):
     assert {r[1] for r in rows} == {str(p) for p in ports}
     assert all(r[0] not in ("", "0") for r in rows) and len({r[0] for r in rows}) == 2
     assert {r[2] for r in rows} == {"1"}  # 1 = Good
+
+
+def _rss_kb(pid: int) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1])
+    return 0
+
+
+def test_hostile_security_input_is_counted_and_memory_stays_bounded(pki, tmp_path):
+    """10,000 distinct unknown digests, signatures cut short, certificates cut short and
+    a chain longer than allowed, sent to ``obu run --verify enforce``: every frame is
+    counted under its reason, the OBU keeps running and its memory stays bounded."""
+    from catc.j2735.ieee1609 import build_signed
+
+    ports = free_ports()
+    obu = start_obu(tmp_path, ports, "--predictor", "ca", "--verify", "enforce", "--trust",
+                    str(pki))
+    frame = _frames(1)[0]
+    now = unix_to_time64(time.time())
+    rng = random.Random(5)
+    cert = (pki / "pseudonym-4.oer").read_bytes()
+    key = load_private_pem((pki / "pseudonym-4.key.pem").read_bytes())
+    good = sign_bsm(frame, key, cert, now, include_cert=True)
+    # a chain one longer than allowed (root -> AA -> sub-CA -> end entity: the limit is
+    # three certificates with the root), both new certificates validly signed
+    from catc.j2735.ieee1609 import parse_certificate
+    from catc.security import Identity, issue_certificate
+
+    aa_raw = (pki / "aa.oer").read_bytes()
+    aa = Identity("aa", aa_raw, parse_certificate(aa_raw)[0],
+                  load_private_pem((pki / "aa.key.pem").read_bytes()))
+    validity = {"start_time32": aa.cert.start_time32, "duration_s": aa.cert.duration_s}
+    sub = issue_certificate(aa, issue_psids=(0x20,), name="sub-ca", **validity)
+    deep = issue_certificate(sub, app_psids=(0x20,), **validity)
+    chain = [deep.raw, sub.raw]
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        def send(data: bytes) -> None:
+            s.sendto(data, ("127.0.0.1", ports[0]))
+
+        send(good)
+        time.sleep(0.3)
+        rss0 = _rss_kb(obu.pid)
+        for i in range(10_000):
+            send(build_signed(frame, generation_time_us=now,
+                              signer=("digest", rng.randbytes(8)),
+                              signature=rng.randbytes(64)))
+            if i % 200 == 199:
+                time.sleep(0.02)  # about 10,000 frames/s, under the socket buffer
+        for cut in (1, 10, 33):  # the signature cut short
+            send(good[:-cut])
+        for cut in range(1, 40, 7):  # the certificate cut short
+            send(good[:len(good) - 66 - cut])
+        send(build_signed(frame, generation_time_us=now, signer=("certificate", chain),
+                          signature=rng.randbytes(64)))
+        time.sleep(1.0)
+        rss1 = _rss_kb(obu.pid)
+    assert obu.poll() is None  # still running
+    _, err = finish(obu)
+    c = _counters(err)
+    assert c["verify_ok"] == 1 and c["verify_unknown-signer"] == 10_000
+    assert c["verify_chain"] == 1
+    assert c["decode_errors"] == 3 + len(range(1, 40, 7))
+    assert c["frames_rv"] == 10_000 + 1 + 3 + len(range(1, 40, 7)) + 1
+    assert rss1 - rss0 < 30_000, (rss0, rss1)  # kB: no per-digest state kept

@@ -175,3 +175,32 @@ def test_misbehavior_detection_reports_nothing_on_a_clean_run(tmp_path):
     # (a frame that arrives just after its host tick goes to the next one in either run,
     # so the per-tick estimates may differ by such timing, by less than a millimetre)
     assert abs(a["pte95_m"] - b["pte95_m"]) < 1e-3
+
+
+def test_captures_sweep_puts_an_attack_beside_per(tmp_path):
+    """``captures sweep --attack`` runs the attack live at each PER against each defence
+    and reports it in the table and the JSON."""
+    import subprocess
+    import sys
+
+    from tests.conftest import shared_path
+
+    data = shared_path("openacc-zalazone", "short_setting_dynamic_part22.csv")
+    out = subprocess.run(
+        [sys.executable, "-m", "captures.cli", "sweep", "--dataset", f"openacc:{data}",
+         "--predictors", "ca", "--per", "0", "--rate", "10", "--attack",
+         "bad-signature:start=10,duration=3", "--defences", "none,enforce",
+         "--json", str(tmp_path / "sweep.json")], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    rows = json.loads((tmp_path / "sweep.json").read_text())["attacks"]
+    assert [(r["kind"], r["per"], r["defence"]) for r in rows] == [
+        ("bad-signature", 0.0, "none"), ("bad-signature", 0.0, "enforce")]
+    none, enforce = rows
+    assert none["sent"] == enforce["sent"] == 30  # 3 s of one RV at 10 Hz, PER 0
+    assert none["accepted"] == 30 and none["rejected"] == 0  # nobody checks
+    assert enforce["accepted"] == 0 and enforce["rejected"] == 30
+    assert "bad-signature:start=10,duration=3" in out.stdout and "enforce" in out.stdout
+    bad = subprocess.run([sys.executable, "-m", "captures.cli", "sweep", "--dataset",
+                          f"openacc:{data}", "--attack", "teleport"],
+                         capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "unknown kind" in bad.stderr

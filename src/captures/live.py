@@ -120,3 +120,75 @@ def agreement(live: dict, offline: dict, pte_tol_m: float = 0.01,
     ok = counts and d_pte is not None and abs(d_pte) <= pte_tol_m \
         and (d_fcw is None or abs(d_fcw) <= fcw_tol)
     return {"pte95_m": d_pte, "fcw_accuracy": d_fcw, "counts_equal": counts, "ok": bool(ok)}
+
+
+#: The OBU's defences an attack cell runs against: flags of ``obu run``.
+DEFENCES = {"none": [], "enforce": ["--verify", "enforce"],
+            "enforce+mbd": ["--verify", "enforce", "--mbd"]}
+
+
+def attack_checks(spec: str, table: MobilityTable, predictor: str, attacks: list[str],
+                  pers: list[float], *, defences: list[str] | None = None, speed: float = 8.0,
+                  seed: int = 0, progress: TextIO | None = None) -> list[dict]:
+    """Each attack (``rve run --attack`` text) × PER × defence, live: the RVE signs with a
+    fresh test PKI (one pseudonym per RV and one for an insider), the OBU runs with the
+    defence's flags; one row per run with the FCW false alarms and missed warnings (FP and
+    FN ticks against the ground truth), what the OBU accepted, rejected and quarantined of
+    the attack's frames, and detection recall, precision and time to detect."""
+    from captures.score import score
+    from hil.pki import init
+
+    defences = list(DEFENCES) if defences is None else defences
+    rows = []
+    root = Path(tempfile.mkdtemp(prefix="catc-attack-"))
+    try:
+        init(root / "pki", max(2, len(table.tracks) + 1), 1.0, seed=f"sweep-{seed}")
+        for attack in attacks:
+            kind = attack.partition(":")[0]
+            for per in pers:
+                for defence in defences:
+                    cap = root / f"{kind}-{per:g}-{defence}"
+                    if progress:
+                        print(f"attack: {attack}, PER {per:g} %, defence {defence}, trip "
+                              f"{table.name} ...", file=progress, flush=True)
+                    run_daemons(cap, ["--dataset", spec, "--trip", table.name, "--per",
+                                      f"{per:g}", "--seed", str(seed), "--speed",
+                                      f"{speed:g}", "--sign", str(root / "pki"),
+                                      "--attack", attack],
+                                ["--predictor", predictor, "--trust", str(root / "pki"),
+                                 *DEFENCES[defence]])
+                    s = score(cap)
+                    a = s["attacks"].get(kind, {})
+                    d = a.get("detection", {})
+                    ttd = list(d.get("time_to_detect_s", {}).values())
+                    rows.append({
+                        "attack": attack, "kind": kind, "per": per, "defence": defence,
+                        "trip": table.name, "predictor": predictor,
+                        "fcw_accuracy": s["fcw_accuracy"], "false_alarms": s["fcw"]["fp"],
+                        "missed": s["fcw"]["fn"], "sent": a.get("sent", 0),
+                        "accepted": a.get("accepted", 0),
+                        "rejected": sum(a.get("rejected", {}).values()),
+                        "quarantined": a.get("quarantined", 0),
+                        "warnings_on_fabricated": a.get("warnings", {}),
+                        "recall": d.get("recall"), "precision": d.get("precision"),
+                        "time_to_detect_s": max(ttd) if ttd else None,
+                        "pte95_m": s["pte95_m"]})
+    finally:
+        shutil.rmtree(root, ignore_errors=True)
+    return rows
+
+
+def attack_table(rows: list[dict]) -> str:
+    """The attack rows as a text table."""
+    head = ["attack", "PER %", "defence", "FCW acc", "false alarms", "missed", "sent",
+            "accepted", "rejected", "quarantined", "recall", "precision", "detect s"]
+    body = [[r["attack"], f"{r['per']:g}", r["defence"], f"{r['fcw_accuracy']}",
+             str(r["false_alarms"]), str(r["missed"]), str(r["sent"]), str(r["accepted"]),
+             str(r["rejected"]), str(r["quarantined"]),
+             "-" if r["recall"] is None else f"{r['recall']:g}",
+             "-" if r["precision"] is None else f"{r['precision']:g}",
+             "-" if r["time_to_detect_s"] is None else f"{r['time_to_detect_s']:.2f}"]
+            for r in rows]
+    widths = [max(len(h), *(len(b[i]) for b in body)) for i, h in enumerate(head)]
+    return "\n".join("  ".join(c.rjust(w) for c, w in zip(line, widths, strict=True))
+                     for line in [head, *body])

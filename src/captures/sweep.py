@@ -118,6 +118,13 @@ def add_grid_arguments(p: argparse.ArgumentParser) -> None:
                    help="also run these cells (e.g. 50@10,90@10) through the real daemons "
                         "over UDP on 127.0.0.1, on the first trip of the first dataset, "
                         "with hgp (else the first of --predictors)")
+    p.add_argument("--attack", action="append", metavar="KIND[:KEY=VALUE,...]",
+                   help="also run this attack (rve run --attack) live on the first dataset's "
+                        "first trip at each --per, against each --defences (repeatable): "
+                        "FCW false alarms and misses, rejections, detection recall/precision")
+    p.add_argument("--defences", type=partial(csv_list, str), default=None,
+                   help="OBU defences of the attack runs: none, enforce, enforce+mbd "
+                        "(default all three)")
     p.add_argument("--live-speed", type=float, default=8.0,
                    help="replay speed of the live runs (default 8x)")
 
@@ -474,6 +481,19 @@ def check_args(args: argparse.Namespace, prog: str) -> tuple[list[Cell], list[st
     """The grid and the FCW predictors, or SweepError for bad flags."""
     if not args.dataset:
         raise SweepError("give at least one --dataset SPEC")
+    if getattr(args, "attack", None):
+        from captures.live import DEFENCES
+        from catc.attacks import parse
+
+        try:
+            for text in args.attack:
+                parse(text)
+        except ValueError as err:
+            raise SweepError(str(err)) from None
+        bad = [d for d in args.defences or [] if d not in DEFENCES]
+        if bad:
+            raise SweepError(f"--defences: unknown {bad[0]!r}; choose from "
+                             f"{', '.join(DEFENCES)}")
     if args.predictors is None:
         args.predictors = list(available())
     for n in args.predictors + [p for p in (args.fcw_predictors or []) if p != "none"]:
@@ -530,6 +550,14 @@ def run_sweep(args: argparse.Namespace, prog: str = "sweep") -> dict:
         doc["live"] = live_checks(args.dataset[0], first, who, live_cells,
                                   seed=0, speed=args.live_speed, progress=sys.stderr,
                                   keep=getattr(args, "live_dir", None))
+    if getattr(args, "attack", None):
+        from captures.live import attack_checks
+
+        first = next(iter(datasets.values()))[0]
+        who = "hgp" if "hgp" in args.predictors else args.predictors[0]
+        doc["attacks"] = attack_checks(args.dataset[0], first, who, args.attack, args.per,
+                                       defences=args.defences, speed=args.live_speed,
+                                       progress=sys.stderr)
     return doc
 
 
@@ -540,6 +568,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"captures sweep: {err}", file=sys.stderr)
         return 2
     print(summary(doc["rows"]))
+    if doc.get("attacks"):
+        from captures.live import attack_table
+
+        print(attack_table(doc["attacks"]))
     print(f"{len(doc['rows'])} rows in {doc['elapsed_s']:.0f} s", file=sys.stderr)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)

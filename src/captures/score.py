@@ -242,7 +242,7 @@ def _attacks(schedule: list[dict], rx: list[dict], events: list[dict],
     misbehavior reports: detection precision and recall over the attacking ids (an id is
     detected when a report names it as the suspect; precision counts the reports' other
     suspects against it) and the time from the attacker's first frame to its first
-    report."""
+    report (dataset seconds: until the message that raised the first report)."""
     kind_of: dict[tuple, str] = {}  # (id, msgCnt, secMark) -> kind, for the rx join
     fabricated: dict[str, str] = {}
     out: dict[str, dict] = {}
@@ -291,16 +291,17 @@ def _detection(out: dict, schedule: list[dict], fabricated: dict[str, str],
                mbr: list[dict]) -> None:
     """Detection precision, recall and time to detect per attack kind (see _attacks)."""
     attackers: dict[str, str] = dict(fabricated)  # id -> kind
-    first_sent: dict[str, float] = {}
+    first_sent: dict[str, float] = {}  # id -> dataset time of its first attack frame
     for r in schedule:
         if r.get("attack") in out and "sent_unix" in r:
             if r["attack"] in ("offset", "speed", "replay"):  # a real id misbehaving
                 attackers.setdefault(r["id"], r["attack"])
             if r["id"] in attackers and attackers[r["id"]] == r["attack"]:
-                first_sent.setdefault(r["id"], r["sent_unix"])
-    first_report: dict[str, float] = {}
+                first_sent.setdefault(r["id"], r["t"])
+    # the first report on each suspect, as the secMark of the message that raised it
+    first_report: dict[str, int] = {}
     for m in mbr:
-        first_report.setdefault(m["suspect"], m["t_unix"])
+        first_report.setdefault(m["suspect"], m["sec_mark"])
     false_suspects = sorted(set(first_report) - set(attackers))
     for kind, a in out.items():
         ids = [i for i, k in attackers.items() if k == kind and i in first_sent]
@@ -311,7 +312,11 @@ def _detection(out: dict, schedule: list[dict], fabricated: dict[str, str],
             "attackers": len(ids), "detected": len(hit),
             "recall": round(len(hit) / len(ids), 4),
             "precision": round(len(hit) / (len(hit) + len(false_suspects)), 4) if hit else None,
-            "time_to_detect_s": {i: round(first_report[i] - first_sent[i], 3) for i in hit},
+            # dataset seconds from the attacker's first frame to the message that got it
+            # reported (secMarks wrap each minute)
+            "time_to_detect_s": {
+                i: round(((first_report[i] - round(first_sent[i] * 1000)) % 60_000) / 1000, 3)
+                for i in hit},
         }
     out["_mbd"] = {"suspects": len(first_report), "false_suspects": false_suspects,
                    "reports": len(mbr)}

@@ -311,6 +311,9 @@ class MbdConfig:
     #: pseudonym change, not an appearance (J2735 TemporaryIDs change with the pseudonym
     #: certificate, possibly after a silent period of a few seconds).  Ours.
     sa_link_time_s: float = 5.0
+    #: ... and last heard at least this long (s) before the new id's first message: half
+    #: a 10 Hz interval (an id still sending alongside is a neighbour).  Ours.
+    sa_link_min_gap_s: float = 0.05
     #: ... "continues": within ``sa_link_accel_mps2 dt² / 2 + max_mgt_rng_up_m`` of where
     #: the old id's last speed and heading would have taken it (0.3 g of unannounced
     #: acceleration or braking during the silence).  Ours.
@@ -787,7 +790,9 @@ class MisbehaviorDetector:
                 continue
             m = o.acc
             dt = self._pair_dt(o, t, sm)
-            if not 0.0 <= dt <= c.sa_link_time_s:
+            # a vehicle does not send under two ids in the same interval: an id heard with
+            # this very message's time is a neighbour, not our previous pseudonym
+            if not c.sa_link_min_gap_s <= dt <= c.sa_link_time_s:
                 continue
             ox, oy = _dlon(m.lon, lon) * kx, (m.lat - lat) * ky
             if m.speed is not None and m.heading is not None:

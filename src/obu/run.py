@@ -279,7 +279,8 @@ class Obu:
             self.pending_rx[id(bsm)] = (rx_unix, data, verdict)
             return
         self.host = bsm
-        self.last_host = (bsm, rx_unix)
+        if bsm.sec_mark is not None:  # the host's clock (data time), for the MBD
+            self.last_host = (bsm, rx_unix, self.clock(bsm.sec_mark))
 
     #: A host frame older than this (s) is no position for the range and appearance
     #: checks (catc.mbd: a stale host position gives false sudden appearances).
@@ -288,22 +289,31 @@ class Obu:
     def misbehaves(self, bsm, rx_unix: float, data: bytes) -> bool:
         """Run the misbehavior checks on one RV BSM; write a report per detection
         (``obu.mbr.jsonl``); True (drop it, and its track) when its sender is in
-        quarantine."""
+        quarantine.
+
+        The checks' clock is the host's (its secMark time at the newest host frame), like
+        the CAM's: a replay faster than real time (``rve run --speed``) then looks to them
+        as it would on the road, where the receive clock and the senders' secMarks
+        advance together.  Before the first host frame nothing is checked."""
         host = self.last_host
-        fresh = host is not None and rx_unix - host[1] <= self.HOST_FRESH_S
+        if host is None:
+            self.counters["mbd_no_host_yet"] += 1
+            return False
+        t = host[2]
+        fresh = rx_unix - host[1] <= self.HOST_FRESH_S
         hb = host[0] if fresh else None
-        found = self.mbd.observe(bsm, rx_unix, hb.lat if hb else None, hb.lon if hb else None,
+        found = self.mbd.observe(bsm, t, hb.lat if hb else None, hb.lon if hb else None,
                                  host_heading=hb.heading if hb else None)
         for d in found:
             self.counters[f"mbd_{d.check}"] += 1
             if self.cap is not None and self.cap.mbr is not None:
                 self.cap.mbr.write({
-                    "t_unix": rx_unix, "reporter": f"{hb.temp_id:08X}" if hb else None,
+                    "t_unix": rx_unix, "t": t, "reporter": f"{hb.temp_id:08X}" if hb else None,
                     "suspect": f"{d.suspect:08X}", "check": d.check,
                     "score": round(d.score, 4), "evidence": d.evidence,
                     "other": None if d.other is None else f"{d.other:08X}",
                     "msgCnt": bsm.msg_cnt, "sec_mark": bsm.sec_mark, "hex": data.hex()})
-        if not self.mbd.quarantined(bsm.temp_id, rx_unix):
+        if not self.mbd.quarantined(bsm.temp_id, t):
             return False
         self.counters["mbd_quarantined"] += 1
         self.pending = [m for m in self.pending if m.temp_id != bsm.temp_id]

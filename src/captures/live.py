@@ -143,11 +143,11 @@ def attack_checks(spec: str, table: MobilityTable, predictor: str, attacks: list
     root = Path(tempfile.mkdtemp(prefix="catc-attack-"))
     try:
         init(root / "pki", max(2, len(table.tracks) + 1), 1.0, seed=f"sweep-{seed}")
-        for attack in attacks:
+        for k, attack in enumerate(attacks):
             kind = attack.partition(":")[0]
             for per in pers:
                 for defence in defences:
-                    cap = root / f"{kind}-{per:g}-{defence}"
+                    cap = root / f"{k}-{kind}-{per:g}-{defence}"  # a new directory a run
                     if progress:
                         print(f"attack: {attack}, PER {per:g} %, defence {defence}, trip "
                               f"{table.name} ...", file=progress, flush=True)

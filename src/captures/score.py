@@ -283,13 +283,16 @@ def _attacks(schedule: list[dict], rx: list[dict], events: list[dict],
             w = out[kind]["warnings"]
             w[e["app"]] = w.get(e["app"], 0) + 1
     if mbr is not None:
-        _detection(out, schedule, fabricated, mbr)
+        passed = {r.get("id") for r in rx if r.get("status") in ("ok", "quarantined")}
+        _detection(out, schedule, fabricated, mbr, passed)
     return out
 
 
 def _detection(out: dict, schedule: list[dict], fabricated: dict[str, str],
-               mbr: list[dict]) -> None:
-    """Detection precision, recall and time to detect per attack kind (see _attacks)."""
+               mbr: list[dict], passed: set) -> None:
+    """Detection precision, recall and time to detect per attack kind (see _attacks),
+    over the attacking ids whose frames passed verification (``passed``: the rest never
+    reach misbehavior detection)."""
     attackers: dict[str, str] = dict(fabricated)  # id -> kind
     first_sent: dict[str, float] = {}  # id -> dataset time of its first attack frame
     for r in schedule:
@@ -304,7 +307,8 @@ def _detection(out: dict, schedule: list[dict], fabricated: dict[str, str],
         first_report.setdefault(m["suspect"], m["sec_mark"])
     false_suspects = sorted(set(first_report) - set(attackers))
     for kind, a in out.items():
-        ids = [i for i, k in attackers.items() if k == kind and i in first_sent]
+        ids = [i for i, k in attackers.items()
+               if k == kind and i in first_sent and i in passed]
         if not ids:
             continue
         hit = [i for i in ids if i in first_report]

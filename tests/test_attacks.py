@@ -149,7 +149,7 @@ def test_misbehavior_detection_quarantines_the_insider_ghost_before_any_warning(
     assert ghost["detection"]["time_to_detect_s"][insider] <= 0.1  # its first message
     assert ghost["accepted"] == 0 and ghost["quarantined"] > 0
     assert sybil["detection"]["recall"] == 1.0
-    assert s["attacks"]["_mbd"]["false_suspects"] == []
+    assert s["mbd"]["false_suspects"] == []
     reports = [json.loads(line) for line in (tmp_path / "obu.mbr.jsonl").open()]
     first = next(r for r in reports if r["suspect"] == insider)
     assert first["check"] == "sudden-appearance" and first["msgCnt"] == 0

@@ -60,6 +60,7 @@ class _Listener:
     def __init__(self, can_id: int, errors: Counter) -> None:
         import isotp
 
+        self._isotp = isotp
         self._inbox: deque = deque()
         self._errors = errors
         self.stack = isotp.TransportLayerLogic(
@@ -77,9 +78,7 @@ class _Listener:
         self._errors[name.lower()] += 1
 
     def feed(self, msg: Any) -> list[bytes]:
-        import isotp
-
-        self._inbox.append(isotp.CanMessage(arbitration_id=msg.arbitration_id,
+        self._inbox.append(self._isotp.CanMessage(arbitration_id=msg.arbitration_id,
                                             data=bytes(msg.data), is_fd=msg.is_fd))
         self.stack.process()
         out = []

@@ -203,6 +203,7 @@ def score(directory: Path) -> dict:
     lat = [r["decided_unix"] - send_time[(r["id"], r["msgCnt"], r["sec_mark"])]
            for r in ok if (r["id"], r["msgCnt"], r["sec_mark"]) in send_time]
     lat_ms = np.array(lat) * 1000.0
+    attacks, mbr = _attacks(schedule, rx, events, names), _mbr(directory)
     result = {
         "pte95_m": round(float(np.percentile(all_pte, 95)), 4) if len(all_pte) else None,
         "pte_mean_m": round(float(all_pte.mean()), 4) if len(all_pte) else None,
@@ -220,7 +221,9 @@ def score(directory: Path) -> dict:
         "warnings": dict(Counter(f"{e['app']}" for e in events if e["kind"] == "start")),
         "events": events,
         "phantom_received": len(ok_all) - len(ok),
-        "attacks": _attacks(schedule, rx, events, names, _mbr(directory)),
+        "attacks": attacks,
+        "mbd": _detection(attacks, schedule, rx, names, mbr) if attacks and mbr is not None
+        else None,
         "ticks": len(ticks), "predictor": obu_cfg["settings"].get("predictor"),
         "per": rve_cfg["channel"]["per"], "rate_hz": rve_cfg["channel"]["rate_hz"],
         "dataset": rve_cfg["dataset"]["name"],
@@ -235,14 +238,10 @@ def _mbr(directory: Path) -> list[dict] | None:
 
 
 def _attacks(schedule: list[dict], rx: list[dict], events: list[dict],
-             names: dict[str, str], mbr: list[dict] | None = None) -> dict[str, dict]:
+             names: dict[str, str]) -> dict[str, dict]:
     """Per attack kind (``rve run --attack``): the frames the RVE sent for it, what the
-    OBU accepted (tracked), rejected (by verdict) and quarantined, the warnings raised on
-    the ids it fabricated (every one a false alarm: those vehicles do not exist), and with
-    misbehavior reports: detection precision and recall over the attacking ids (an id is
-    detected when a report names it as the suspect; precision counts the reports' other
-    suspects against it) and the time from the attacker's first frame to its first
-    report (dataset seconds: until the message that raised the first report)."""
+    OBU accepted (tracked), rejected (by verdict) and quarantined, and the warnings raised
+    on the ids it fabricated (every one a false alarm: those vehicles do not exist)."""
     kind_of: dict[tuple, str] = {}  # (id, msgCnt, secMark) -> kind, for the rx join
     fabricated: dict[str, str] = {}
     out: dict[str, dict] = {}
@@ -282,18 +281,20 @@ def _attacks(schedule: list[dict], rx: list[dict], events: list[dict],
         if kind is not None and e["kind"] == "start":
             w = out[kind]["warnings"]
             w[e["app"]] = w.get(e["app"], 0) + 1
-    if mbr is not None:
-        passed = {r.get("id") for r in rx if r.get("status") in ("ok", "quarantined")}
-        _detection(out, schedule, fabricated, mbr, passed)
     return out
 
 
-def _detection(out: dict, schedule: list[dict], fabricated: dict[str, str],
-               mbr: list[dict], passed: set) -> None:
-    """Detection precision, recall and time to detect per attack kind (see _attacks),
-    over the attacking ids whose frames passed verification (``passed``: the rest never
-    reach misbehavior detection)."""
-    attackers: dict[str, str] = dict(fabricated)  # id -> kind
+def _detection(out: dict, schedule: list[dict], rx: list[dict], names: dict[str, str],
+               mbr: list[dict]) -> dict:
+    """Misbehavior detection against the attacks' ground truth: per attack kind (added to
+    ``out``), precision and recall over the attacking ids whose frames passed verification
+    (the rest never reach the checks; an id is detected when a report names it as the
+    suspect, and precision counts the reports' other suspects against it) and the time
+    from the attacker's first frame to the message that raised its first report (dataset
+    seconds).  Returns the summary: suspects, false suspects, reports."""
+    passed = {r.get("id") for r in rx if r.get("status") in ("ok", "quarantined")}
+    attackers = {r["id"]: r["attack"] for r in schedule  # id -> kind; fabricated first
+                 if r.get("attack") and r["id"] not in names}
     first_sent: dict[str, float] = {}  # id -> dataset time of its first attack frame
     for r in schedule:
         if r.get("attack") in out and "sent_unix" in r:
@@ -322,8 +323,8 @@ def _detection(out: dict, schedule: list[dict], fabricated: dict[str, str],
                 i: round(((first_report[i] - round(first_sent[i] * 1000)) % 60_000) / 1000, 3)
                 for i in hit},
         }
-    out["_mbd"] = {"suspects": len(first_report), "false_suspects": false_suspects,
-                   "reports": len(mbr)}
+    return {"suspects": len(first_report), "false_suspects": false_suspects,
+            "reports": len(mbr)}
 
 
 def table(r: dict) -> str:
@@ -346,8 +347,6 @@ def table(r: dict) -> str:
         lines.append(f"latency send -> decision: p50 {lat['p50']} ms, p99 {lat['p99']} ms, "
                      f"max {lat['max']} ms")
     for kind, a in r.get("attacks", {}).items():
-        if kind.startswith("_"):
-            continue
         if "detection" in a:
             d = a["detection"]
             ttd = list(d["time_to_detect_s"].values())

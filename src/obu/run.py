@@ -232,6 +232,10 @@ class Obu:
                          if args.warnings else sys.stdout)
         self.origin_written = False
         self.verifier = _verifier(args)
+        if self.verifier is not None:
+            from catc.security import unix_to_time64
+
+            self.to_time64 = unix_to_time64
         self.mbd = None
         if args.mbd:
             from catc.mbd import MisbehaviorDetector
@@ -328,12 +332,10 @@ class Obu:
 
     def verify(self, envelope, rx_unix: float) -> str:
         """The 1609.2 verdict of one RV frame (``ok`` or a reason), counted."""
-        from catc.security import unix_to_time64
-
         if envelope is None:
             reason = "unsigned"
         else:
-            reason = self.verifier.verify(envelope, unix_to_time64(rx_unix)).reason
+            reason = self.verifier.verify(envelope, self.to_time64(rx_unix)).reason
         self.counters[f"verify_{reason}"] += 1
         if reason != "ok":
             self.counters["verify_rejected" if self.enforce else "verify_failed"] += 1

@@ -167,6 +167,7 @@ class _Capture:
         directory.mkdir(parents=True, exist_ok=True)
         self.schedule = JsonLines(directory / "rve.schedule.jsonl")
         self.truth = JsonLines(directory / "rve.truth.jsonl")
+        self.wsmp = framing_of(args) == "wsmp"  # the pcapng gets Ethernet/0x88DC frames
         self.pcap = PcapngWriter(directory / "rve.frames.pcapng") \
             if args.transport == "udp" else None
         self.canlog = can_log(directory / "rve.frames", _can_channel(args)) \
@@ -488,7 +489,14 @@ class _Attacking:
                     signer.attacker("outsider")
         self.attacks = Attacks(specs, the_plan)
         self.plan, self.signer, self.framing = the_plan, signer, framing
-        self.history: dict[int, dict] = {}  # vehicle -> {ms of t: (frame, seq)}
+        # what a replay attacker heard: replayed vehicle -> {ms of t: (frame, seq)}, kept
+        # for the longest replay delay only
+        self.replayed: dict[int, float] = {}
+        for k, a in enumerate(specs):
+            if a.kind == "replay":
+                v = self.attacks.targets[k]
+                self.replayed[v] = max(a["delay"], self.replayed.get(v, 0.0))
+        self.history: dict[int, dict] = {v: {} for v in self.replayed}
         self.counts = {"attack_frames": 0}
 
     def frames(self, batch, frames: list, gen_unix: float) -> list[tuple[bytes, dict]]:
@@ -499,10 +507,16 @@ class _Attacking:
             if ev["host"]:
                 continue
             v, t = int(ev["vehicle"]), float(ev["t"])
-            if frame is not None and any(k == v for k in self.attacks.targets.values()):
-                self.history.setdefault(v, {})[round(t * 1000)] = (frame, int(ev["seq"]))
+            if v not in self.history:
+                continue
+            heard = self.history[v]
+            if frame is not None:
+                heard[round(t * 1000)] = (frame, int(ev["seq"]))
+                oldest = round((t - self.replayed[v]) * 1000)
+                for ms in [ms for ms in heard if ms < oldest]:
+                    del heard[ms]
             for a in self.attacks.replays(v, t):
-                old = self.history.get(v, {}).get(round((t - a["delay"]) * 1000))
+                old = heard.get(round((t - a["delay"]) * 1000))
                 if old is not None:
                     name = self.plan.vehicles[v]
                     out.append((old[0], self._record(a, name, f"{temp_id(name):08X}",
@@ -563,7 +577,7 @@ def _pcap(cap, args, src, channel: str, tid: int, frame: bytes, t_unix: float) -
     """One sent frame into the pcapng: as a UDP datagram, or with --framing wsmp as it
     goes over the air (Ethernet II, ethertype 0x88DC, from a MAC made of the sender's
     TemporaryID)."""
-    if framing_of(args) == "wsmp":
+    if cap.wsmp:
         mac = b"\x02\x00" + tid.to_bytes(4, "big")
         cap.pcap.write(ethernet(b"\xff" * 6, mac, ETHERTYPE_WSMP, frame), t_unix,
                        cap.pcap.ETHERNET)

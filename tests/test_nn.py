@@ -223,7 +223,7 @@ sys.exit(main(["sweep", "--dataset", "scenario:highway-braking", "--predictors",
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                           timeout=120)
     lines = done.stdout.splitlines()
-    assert lines[0] == "hold,cs,ca,kf,ctrv,hgp,hgp-d"
+    assert lines[0] == "hold,cs,ca,kf,ctrv,imm,hgp,hgp-d"
     assert lines[1].startswith("MissingExtra ") and "pip install 'catc-hil[nn]'" in lines[1]
     assert done.returncode == 2
     err = done.stderr.strip().splitlines()

@@ -20,7 +20,8 @@ import matplotlib.pyplot as plt
 #: One colour and marker per predictor, the same in every figure.
 STYLE = {
     "hold": ("#7f7f7f", "x"), "cs": ("#bcbd22", "v"), "ca": ("#1f77b4", "s"),
-    "kf": ("#ff7f0e", "D"), "ctrv": ("#9467bd", "^"), "hgp": ("#d62728", "o"),
+    "kf": ("#ff7f0e", "D"), "ctrv": ("#9467bd", "^"), "imm": ("#393b79", "d"),
+    "hgp": ("#d62728", "o"),
     "hgp-d": ("#e377c2", "P"), "ae": ("#8c564b", "<"), "ae-d": ("#c49c94", ">"),
     "lstm": ("#2ca02c", "*"), "lstm-d": ("#98df8a", "h"),
 }

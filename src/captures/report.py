@@ -158,9 +158,9 @@ def _pte(rows: list[dict], ds: str, name: str, per: float) -> float | None:
     return None
 
 
-#: The baselines the verdict compares HGP with: the paper's kinematic ones and CTRV, then
+#: The baselines the verdict compares HGP with: the paper's kinematic ones, CTRV and IMM, then
 #: the paper's neural ones (when the sweep has them).
-VERDICT_BASELINES = ("ca", "kf", "ctrv", "ae", "ae-d", "lstm", "lstm-d")
+VERDICT_BASELINES = ("ca", "kf", "ctrv", "imm", "ae", "ae-d", "lstm", "lstm-d")
 
 
 def verdict(rows: list[dict], ds: str, baselines=VERDICT_BASELINES) -> list[str]:
@@ -415,9 +415,9 @@ def run(args: argparse.Namespace) -> int:
                                 f"ngsim:{args.data / 'ngsim-i80-pairs'}"]
             if args.predictors is None:
                 args.predictors = list(available())
-            if args.fcw_predictors is None:  # the paper's FCW figures: these four
+            if args.fcw_predictors is None:  # the paper's FCW figures and the IMM peer
                 args.fcw_predictors = [p for p in args.predictors
-                                       if p in ("hold", "ca", "kf", "hgp")]
+                                       if p in ("hold", "ca", "kf", "imm", "hgp")]
             args.live_dir = args.out / "live"
             sweep_doc = run_sweep(args, "report")
         hgp = None

@@ -426,7 +426,7 @@ def grid_table(rows: list[dict], dataset: str, metric: str, axis: str = "per",
             if any(value(by.get((n, k))) is not None for k in keys)]
     if ratios_to and ratios_to in names and metric == "pte95_m":
         for n in names:
-            if n in ("ca", "kf", "ctrv", "lstm"):
+            if n in ("ca", "kf", "ctrv", "imm", "lstm"):
                 cells_ = []
                 for k in keys:
                     a, b = value(by.get((n, k))), value(by.get((ratios_to, k)))

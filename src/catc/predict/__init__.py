@@ -8,6 +8,7 @@ cs         constant speed and heading
 ca         constant acceleration along the heading, stopping at zero speed
 kf         the paper's Kalman filter, constant-acceleration dynamics
 ctrv       constant turn rate (from the yaw rate) and velocity
+imm        Interacting Multiple Model filter: constant velocity, acceleration, turn
 ae         the paper's autoencoder baseline, indirect (speed and heading)
 ae-d       the autoencoder on x and y (direct)
 lstm       the paper's LSTM baseline, indirect (speed and heading)
@@ -31,6 +32,7 @@ from catc.predict.base import Observation, Prediction, Predictor
 
 def _factories() -> dict[str, Callable[..., Predictor]]:
     from catc.predict.hgp import HgpDirectPredictor, HgpPredictor
+    from catc.predict.imm import ImmPredictor
     from catc.predict.kalman import KalmanPredictor
     from catc.predict.kinematic import (
         ConstantAccelerationPredictor,
@@ -42,12 +44,13 @@ def _factories() -> dict[str, Callable[..., Predictor]]:
 
     return {"hold": HoldPredictor, "cs": ConstantSpeedPredictor,
             "ca": ConstantAccelerationPredictor, "kf": KalmanPredictor, "ctrv": CtrvPredictor,
+            "imm": ImmPredictor,
             **{n: partial(NnPredictor, n) for n in NN_NAMES},
             "hgp": HgpPredictor, "hgp-d": HgpDirectPredictor}
 
 
 #: Every predictor, in the order of the paper's tables: kinematic, neural, HGP.
-NAMES = ("hold", "cs", "ca", "kf", "ctrv", "ae", "ae-d", "lstm", "lstm-d", "hgp", "hgp-d")
+NAMES = ("hold", "cs", "ca", "kf", "ctrv", "imm", "ae", "ae-d", "lstm", "lstm-d", "hgp", "hgp-d")
 #: The predictors whose forecasts :func:`prepare` stacks (for the others it does nothing).
 STACKED = ("ae", "ae-d", "lstm", "lstm-d", "hgp")
 

@@ -63,8 +63,20 @@ VARIANTS: dict[str, tuple[str, dict, str]] = {
                  "default"),
     "ctrv-heading": ("diagnostic: GP speed, constant-yaw-rate heading",
                      {"heading_model": "ctrv"}, "default"),
+    "br-ca-kf": ("branches CA and KF beside the GP, scored at each gap's end",
+                 {"branches": ("ca", "kf")}, "default"),
+    "br-ca-kf-ctrv": ("branches CA, KF and CTRV", {"branches": ("ca", "kf", "ctrv")},
+                      "default"),
+    "br-ca-kf-imm": ("branches CA, KF and IMM", {"branches": ("ca", "kf", "imm")},
+                     "default"),
+    "br-d0.5": ("branches CA and KF, score decay 0.5",
+                {"branches": ("ca", "kf"), "branch_decay": 0.5}, "default"),
+    "br-d0.95": ("branches CA and KF, score decay 0.95",
+                 {"branches": ("ca", "kf"), "branch_decay": 0.95}, "default"),
+    "br-m0.5": ("branches CA and KF, a kinematic branch only at half the GP's score",
+                {"branches": ("ca", "kf"), "branch_margin": 0.5}, "default"),
 }
-BASELINES = ("ca", "kf", "ctrv")
+BASELINES = ("ca", "kf", "ctrv", "imm")
 
 
 def loo_bank(tables, count: int = 300, seed: int = 0) -> KernelBank:
@@ -111,12 +123,13 @@ def main() -> int:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--variants", default=",".join(VARIANTS),
                     help="comma-separated variant names (default all)")
+    ap.add_argument("--no-baselines", action="store_true", help="variants only")
     args = ap.parse_args()
     if not (DATA / "openacc-zalazone").is_dir():
         print(f"no shared data at {DATA}", file=sys.stderr)
         return 2
     pers = [float(p) / 100 for p in args.per.split(",")]
-    names = [*BASELINES, *args.variants.split(",")]
+    names = [*([] if args.no_baselines else BASELINES), *args.variants.split(",")]
     jobs = [(d, n, p) for d in DATASETS for n in names for p in pers]
     with ProcessPoolExecutor(args.workers) as pool:
         results = list(pool.map(pte95, jobs))

@@ -481,3 +481,36 @@ def test_forecast_many_equals_predicting_one_by_one():
     assert made > 1000 and compared > 4000
     assert sum(b.stats["forecasts"] for b in batch) == made
     assert forecast_many(batch, times[-1] + 2.0) == 0  # all cached already
+
+
+def test_branches_answer_where_their_recent_gaps_were_better():
+    """A vehicle on an exact constant-acceleration path with every other BSM lost: CA
+    predicts each gap's end (to the truth's integration error), the GP does not quite,
+    so CA answers gaps of that class (its prediction, exactly); a longer gap, a class not
+    scored yet, is the GP's; reset forgets the scores."""
+    obs = drive(80, v0=12.0, a=1.5, heading0=30.0)
+    p = HgpPredictor(BANK, HgpConfig(branches=("ca",), branch_margin=1.0))
+    from catc.predict import make_predictor
+
+    ref = make_predictor("ca")
+    for o in obs[:60:2]:
+        p.update(o)
+        ref.update(o)
+        p.predict(o.t + 0.1)  # the gap is bridged (the OBU asks at every tick)
+    last = obs[58]
+    assert p.branch(0.2) == 1 and p.branch(5.0) == 0
+    got, want = p.predict(last.t + 0.2), ref.predict(last.t + 0.2)
+    assert (got.x, got.y, got.source) == (want.x, want.y, want.source)
+    assert p.predict(last.t + 5.0).source in ("gp", "cs", "ca")
+    assert p._score[0, 0] > 2.0 * p._score[0, 1]  # squared errors (GP 0.4 mm, CA 0.15 mm)
+    p.reset()
+    assert p.branch(0.2) == 0 and not p._scored.any()
+
+
+def test_before_any_scored_gap_the_gp_answers():
+    obs = drive(60, v0=12.0, a=1.5)
+    a, b = HgpPredictor(BANK), HgpPredictor(BANK, HgpConfig(branches=()))
+    for o in obs[:58]:  # no BSM lost: nothing scored
+        a.update(o)
+        b.update(o)
+    assert a.predict(obs[57].t + 0.7) == b.predict(obs[57].t + 0.7)

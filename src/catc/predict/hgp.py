@@ -137,6 +137,23 @@ class HgpConfig:
     # both datasets: PTE95 within 1.5 % of that at PER 0-95 % (docs/hgp.md).
     reselect_every: int = 10
     reselect_gap_s: float = 0.25
+    # Data-driven hybrid (issue 17; docs/hgp.md "Branches"): kinematic predictors run beside
+    # the GP (names from catc.predict, e.g. ("ca", "kf")).  At every BSM that ends a gap
+    # (one or more BSMs lost) each branch's squared position error at that BSM, from what
+    # it had forecast over the gap, enters a running score per branch (exponentially
+    # weighted, ``branch_decay`` the weight of the old score), one score per gap-length
+    # class (``branch_edges``, s: a gap of 0.2 s and one of 5 s are different questions);
+    # at ``tau`` s into a gap the branch with the lowest score of tau's class answers, a
+    # kinematic one only when its score is below ``branch_margin`` × the GP's; a class
+    # without scores yet is answered by the GP.  () is the GP alone (its own switching
+    # above still applies).  Measured (bench/hgp_ablation.py, docs/hgp.md "Branches"):
+    # CA and KF with margin 0.5 take 3-14 % off PTE95 at PER 10-50 % on both datasets
+    # and add at most 1.7 % at 80-95 %; margin 1 gains more at low PER and loses up to
+    # 5 % at PER 90 %; adding CTRV changed little.
+    branches: tuple = ("ca", "kf")
+    branch_decay: float = 0.8
+    branch_margin: float = 0.5
+    branch_edges: tuple = (0.35, 1.05, 3.05)
 
 
 def _window_series(obs: deque, window_s: float = math.inf) -> tuple[np.ndarray, ...]:
@@ -692,6 +709,15 @@ class HgpPredictor(_WindowPredictor):
         self.stats = {"forecasts": 0, "selections": 0, "online_models": 0, "switch_ca": 0,
                       "switch_cs": 0}
         self._shared = _bank_cache(self.bank, c)
+        if c.branches:
+            from catc.predict import make_predictor
+
+            self._kin = [make_predictor(name) for name in c.branches]
+        else:
+            self._kin = []
+        # per gap class: GP, then each kinematic branch
+        self._score = np.zeros((len(c.branch_edges) + 1, len(self._kin) + 1))
+        self._scored = np.zeros(len(c.branch_edges) + 1, dtype=int)
         # The window as running arrays: one column per received sample (rows t, speed,
         # unwrapped heading in rad, x, y), columns _lo.._hi of a buffer twice as long.
         self._buf = np.empty((5, 2 * c.tw + 2))
@@ -707,11 +733,20 @@ class HgpPredictor(_WindowPredictor):
     def reset(self) -> None:
         super().reset()
         self._reset_window()
+        for k in self._kin:
+            k.reset()
+        self._score[:] = 0.0
+        self._scored[:] = 0
 
     def update(self, obs: Observation) -> None:
         prev = self._obs[-1] if self._obs else None
         if prev is not None and obs.t <= prev.t:
             return
+        if self._kin:
+            if prev is not None:
+                self._score_branches(obs, obs.t - prev.t)
+            for k in self._kin:
+                k.update(obs)
         super().update(obs)
         c = self.config
         h = math.radians(obs.heading)
@@ -747,7 +782,46 @@ class HgpPredictor(_WindowPredictor):
         f = self._forecast
         if f is None or not covers(f, tau, self.config.horizon_s):
             f = self._forecast = self._make_forecast(max(tau, 3.0))
+        branch = self.branch(tau) if self._kin else 0
+        if branch:  # the GP's forecast is still made: it is scored at the next BSM
+            return self._kin[branch - 1].predict(t)
         return read(f, tau)
+
+    def _gap_class(self, tau: float) -> int:
+        edges = self.config.branch_edges
+        i = 0
+        while i < len(edges) and tau > edges[i]:
+            i += 1
+        return i
+
+    def branch(self, tau: float) -> int:
+        """Which branch answers ``tau`` s after the last BSM: 0 the GP, k the k-th of
+        ``config.branches``."""
+        g = self._gap_class(tau)
+        if not self._scored[g]:
+            return 0
+        s = self._score[g]
+        k = int(np.argmin(s[1:])) + 1
+        return k if s[k] < self.config.branch_margin * s[0] else 0
+
+    def _score_branches(self, obs: Observation, gap: float) -> None:
+        """Score each branch at ``obs``, the BSM that ends a gap of ``gap`` s (nothing when
+        no BSM was lost or the GP has no forecast over the gap)."""
+        if gap <= DT + 1e-6:
+            return
+        f = self._forecast
+        if f is None or not covers(f, gap, self.config.horizon_s):
+            return
+        g = read(f, gap)
+        errs = [(g.x - obs.x) ** 2 + (g.y - obs.y) ** 2]
+        for k in self._kin:
+            p = k.predict(obs.t)
+            errs.append((p.x - obs.x) ** 2 + (p.y - obs.y) ** 2)
+        d = self.config.branch_decay
+        g = self._gap_class(gap)
+        self._score[g] *= d
+        self._score[g] += (1.0 - d) * np.array(errs)
+        self._scored[g] += 1
 
     def _window_len(self) -> int:
         if math.isinf(self.config.window_s):  # the default: no time cap, no per-tick scan

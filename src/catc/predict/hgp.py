@@ -718,6 +718,8 @@ class HgpPredictor(_WindowPredictor):
         # per gap class: GP, then each kinematic branch
         self._score = np.zeros((len(c.branch_edges) + 1, len(self._kin) + 1))
         self._scored = np.zeros(len(c.branch_edges) + 1, dtype=int)
+        # per gap class, the branch that answers (kept up to date by _score_branches)
+        self._choice = [0] * (len(c.branch_edges) + 1)
         # The window as running arrays: one column per received sample (rows t, speed,
         # unwrapped heading in rad, x, y), columns _lo.._hi of a buffer twice as long.
         self._buf = np.empty((5, 2 * c.tw + 2))
@@ -737,6 +739,7 @@ class HgpPredictor(_WindowPredictor):
             k.reset()
         self._score[:] = 0.0
         self._scored[:] = 0
+        self._choice = [0] * len(self._choice)
 
     def update(self, obs: Observation) -> None:
         prev = self._obs[-1] if self._obs else None
@@ -797,12 +800,7 @@ class HgpPredictor(_WindowPredictor):
     def branch(self, tau: float) -> int:
         """Which branch answers ``tau`` s after the last BSM: 0 the GP, k the k-th of
         ``config.branches``."""
-        g = self._gap_class(tau)
-        if not self._scored[g]:
-            return 0
-        s = self._score[g]
-        k = int(np.argmin(s[1:])) + 1
-        return k if s[k] < self.config.branch_margin * s[0] else 0
+        return self._choice[self._gap_class(tau)]
 
     def _score_branches(self, obs: Observation, gap: float) -> None:
         """Score each branch at ``obs``, the BSM that ends a gap of ``gap`` s (nothing when
@@ -817,11 +815,15 @@ class HgpPredictor(_WindowPredictor):
         for k in self._kin:
             p = k.predict(obs.t)
             errs.append((p.x - obs.x) ** 2 + (p.y - obs.y) ** 2)
-        d = self.config.branch_decay
+        c = self.config
+        d = c.branch_decay
         g = self._gap_class(gap)
-        self._score[g] *= d
-        self._score[g] += (1.0 - d) * np.array(errs)
+        row = [d * old + (1.0 - d) * e for old, e in zip(self._score[g].tolist(), errs,
+                                                          strict=True)]
+        self._score[g] = row
         self._scored[g] += 1
+        k = min(range(1, len(row)), key=row.__getitem__)
+        self._choice[g] = k if row[k] < c.branch_margin * row[0] else 0
 
     def _window_len(self) -> int:
         if math.isinf(self.config.window_s):  # the default: no time cap, no per-tick scan

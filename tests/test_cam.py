@@ -36,6 +36,10 @@ def bsm(tid: int, t: float, x: float, y: float, speed: float, heading: float,
 
 
 def cam(predictor: str = "ca", apps: bool = False, **kw) -> ContextAwareMap:
+    """A CAM whose tracks are confirmed at their first message unless ``kw`` says
+    otherwise (the tests of confirmation below do)."""
+    kw.setdefault("confirm_after", 1)
+    kw.setdefault("confirm_near", 1)
     cfg = CamConfig(predictor=predictor, origin=ORIGIN, **kw)
     return ContextAwareMap(cfg, SafetyApps() if apps else None)
 
@@ -362,3 +366,89 @@ def test_part2_path_history_fills_the_trail_of_a_new_rv_and_gaps() -> None:
         rv2.lat, rv2.lon, [(0.5, 4.0, 107.5), (3.0, 5.0, 70.0)]))
     snap = m.step(1.0, north(1.0, 0.0, 15.0, tid=99), [rv2])
     assert snap.counters["ph_crumbs_used"] == 3
+
+
+# --- garbage that decodes (issue 18) -------------------------------------------------------
+
+_DISPOSITIONS = ("incomplete", "implausible", "late", "future", "self", "shadow",
+                 "duplicate", "out_of_order", "jump", "inconsistent", "table_full",
+                 "accepted")
+
+
+def _accounted(c) -> bool:
+    """Every received message ended in exactly one of the dispositions."""
+    return c["received"] == sum(c[k] for k in _DISPOSITIONS)
+
+
+def test_the_hosts_own_id_and_bit_flipped_copies_are_never_remote_vehicles() -> None:
+    m = cam()
+    hv = lambda t: north(t, 0.0, 20.0, tid=0x1234_5678)  # noqa: E731
+    m.step(0.0, hv(0.0), [north(0.0, 40.0, 20.0, tid=7)])
+    snap = m.step(0.1, hv(0.1), [
+        north(0.1, 0.0, 20.0, tid=0x1234_5678),  # our own BSM heard back
+        north(0.1, 0.0, 20.0, tid=0x1234_5678 ^ (1 << 17)),  # a copy, one bit off
+        north(0.1, 40.0, 20.0, tid=7 ^ (1 << 30)),  # a copy of RV 7, one bit off
+        north(0.1, 140.0, 20.0, tid=7 ^ (1 << 3)),  # one bit off but 100 m away: a vehicle
+    ])
+    c = snap.counters
+    assert (c["self"], c["shadow"]) == (1, 2)
+    assert sorted(snap.ids) == [7, 7 ^ (1 << 3)] and m.tentative == 0  # confirm_after=1
+    assert _accounted(c)
+    # a pseudonym change of the host: the old id stays "self" for stale_after_s
+    snap = m.step(0.2, north(0.2, 0.0, 20.0, tid=0x0BAD_CAFE),
+                  [north(0.2, 4.0, 20.0, tid=0x1234_5678)])
+    assert snap.counters["self"] == 2
+    # an old copy (0.1 s ago, where the HV was then, 2 m behind it now), one bit off
+    snap = m.step(0.3, north(0.3, 0.0, 20.0, tid=0x0BAD_CAFE),
+                  [north(0.1, 0.0, 20.0, tid=0x0BAD_CAFE ^ 1)])
+    assert snap.counters["shadow"] == 3
+
+
+def test_new_tracks_are_confirmed_before_they_are_classified() -> None:
+    """Far away: 3 consistent BSMs; within near_range_m (sudden appearance): 4."""
+    m = cam(apps=True, confirm_after=3, confirm_near=4)
+    hv = lambda t: north(t, 0.0, 20.0, tid=99)  # noqa: E731
+    seen_far, seen_near, fcw = [], [], []
+    for k in range(6):
+        t = k * 0.1
+        snap = m.step(t, hv(t), [north(t, 120.0, 20.0, tid=5), north(t, 12.0, 5.0, tid=6)])
+        seen_far.append(5 in snap.ids)
+        seen_near.append(6 in snap.ids)
+        fcw.append(any(w.app == "fcw" for w in snap.warnings))
+    assert seen_far == [False, False, True, True, True, True]
+    assert seen_near == [False, False, False, True, True, True]
+    assert snap.counters["confirmed"] == 2 and m.tentative == 0
+    # the slow RV 12 m ahead, closing at 15 m/s: the FCW only once it is confirmed
+    assert fcw[:3] == [False] * 3 and fcw[-1]
+
+
+def test_a_phantom_from_one_off_copies_is_never_confirmed_and_the_table_is_bounded() -> None:
+    m = cam(apps=True, confirm_after=3, confirm_near=4, max_tentative=8)
+    hv = lambda t: north(t, 0.0, 20.0, tid=99)  # noqa: E731
+    rng = random.Random(5)
+    for k in range(50):
+        t = k * 0.1
+        junk = [north(t, rng.uniform(5, 60), rng.uniform(0, 30), tid=rng.getrandbits(32))
+                for _ in range(20)]
+        snap = m.step(t, hv(t), junk)
+    c = snap.counters
+    assert len(snap) == 0 and not snap.warnings and c["confirmed"] == 0
+    assert m.tentative == 8 and c["tentative_evicted"] == 1000 - 8
+    assert _accounted(c)
+
+
+def test_frames_that_contradict_the_senders_trajectory_are_dropped() -> None:
+    m = cam()
+    hv = lambda t: north(t, 0.0, 20.0, tid=99)  # noqa: E731
+    m.step(0.0, hv(0.0), [north(0.0, 50.0, 20.0, tid=7)])
+    snap = m.step(0.1, hv(0.1), [
+        bsm(7, 0.1, 0.0, 52.0, 20.0, 0.0),  # 2 m in 0.1 s at 20 m/s: where it should be 52
+        bsm(7, 0.11, 0.0, 52.2, 45.0, 0.0, cnt=2),  # speed 20 -> 45 m/s in 10 ms
+        bsm(7, 0.12, 0.0, 52.4, 20.0, 90.0, cnt=3),  # heading 0 -> 90 deg in 20 ms
+        bsm(7, 0.13, 4.5, 52.6, 20.0, 0.0, cnt=4),  # 4.5 m sideways in 30 ms
+        bsm(7, 0.14, 0.0, 52.8, 20.0, 0.0, cnt=1),  # msgCnt of the last accepted: a copy
+    ])
+    c = snap.counters
+    assert (c["inconsistent"], c["jump"], c["duplicate"], c["accepted"]) == (2, 1, 1, 2)
+    assert snap.rv(0).y == pytest.approx(52.0, abs=1e-3)
+    assert _accounted(c)

@@ -82,18 +82,27 @@ def _feed(h, obj) -> None:
         raise TypeError(f"cannot digest {type(obj)}")
 
 
+#: Counters added after the digests were pinned (issue 18); left out of the digest when 0.
+LATER_COUNTERS = ("inconsistent", "self", "shadow", "confirmed", "tentative_evicted")
+
+
 def _digest(snaps: list[MapSnapshot]) -> str:
     h = hashlib.sha256()
     for s in snaps:
         for name in FIELDS:
-            _feed(h, getattr(s, name))
+            value = getattr(s, name)
+            if name == "counters":
+                value = {k: v for k, v in value.items() if k not in LATER_COUNTERS or v}
+            _feed(h, value)
     return h.hexdigest()
 
 
 def _replay(table: MobilityTable, duration: float | None = None) -> list[MapSnapshot]:
-    """PER 0.5, seed 0, BSMs through UPER, CA predictor, every application."""
+    """PER 0.5, seed 0, BSMs through UPER, CA predictor, every application; tracks
+    confirmed at their first message, as when the values were pinned."""
     the_plan = plan(table, ChannelConfig(per=0.5), 0, duration=duration)
-    cam = ContextAwareMap(CamConfig(predictor="ca", origin=table.origin), SafetyApps())
+    cam = ContextAwareMap(CamConfig(predictor="ca", origin=table.origin, confirm_after=1,
+                                    confirm_near=1), SafetyApps())
     return list(simulate(the_plan, cam, wire=True))
 
 
@@ -222,7 +231,8 @@ PINNED_NGSIM_200 = ["-0x1.db4d80166ae4ap+5", "0x1.081e357004b46p+8", "0x1.703319
 PINNED_NGSIM_WARNINGS = 12
 PINNED_NGSIM_COUNTERS = {
     "received": 164, "accepted": 164, "incomplete": 0, "implausible": 0, "late": 0,
-    "future": 0, "duplicate": 0, "out_of_order": 0, "jump": 0, "reacquired": 0,
-    "table_full": 0, "displaced": 0, "evicted_stale": 0, "tracks_created": 1,
-    "ph_crumbs_used": 0, "ticks": 322}
+    "future": 0, "duplicate": 0, "out_of_order": 0, "jump": 0, "inconsistent": 0, "self": 0,
+    "shadow": 0, "reacquired": 0, "table_full": 0, "displaced": 0, "evicted_stale": 0,
+    "tracks_created": 1, "confirmed": 0, "tentative_evicted": 0, "ph_crumbs_used": 0,
+    "ticks": 322}
 PINNED_NGSIM_DIGEST = "ab3e60f9c3b43aae41c5dc03cff29512119ceedff48e57fb6f732f156039e19e"

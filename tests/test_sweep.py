@@ -92,7 +92,9 @@ def test_fcw_is_exact_on_the_true_states_and_degrades_with_loss(ngsim):
 
 def test_cam_engine_scores_like_the_track_engine_on_the_same_vehicle(ngsim):
     """The CA-TC's PTE of the leader (as the OBU sees it) against the track engine's PTE of
-    the same vehicle with the same losses: the same to J2735 quantisation."""
+    the same vehicle with the same losses: the same to J2735 quantisation.  The CA-TC
+    scores the leader once its track is confirmed (CamConfig.confirm_near accepted BSMs:
+    it starts near the host), the track engine from its first BSM."""
     t = ngsim[1]
     lead = next(iter(t.tracks))
     only = fcw_scene(t)
@@ -101,7 +103,7 @@ def test_cam_engine_scores_like_the_track_engine_on_the_same_vehicle(ngsim):
     lead_only = replace(t, tracks={lead: t.tracks[lead]})
     e_track, *_ = track_errors(lead_only, "ca", Cell(0.5), 7)
     e_cam = cam_run(only, "ca", Cell(0.5), 7, wire=True).pte
-    assert abs(len(e_cam) - len(e_track)) <= 1
+    assert 0 <= len(e_track) - len(e_cam) <= 12  # 4 BSMs at PER 50 %, seed 7
     assert abs(np.percentile(e_cam, 95) - np.percentile(e_track, 95)) < 0.02
 
 

@@ -161,11 +161,14 @@ def score(directory: Path) -> dict:
     truth_xy = {tid: (t, x, y)
                 for tid, (_, t, x, y) in truth_in_frame(truth, obu_cfg["origin"]).items()}
 
+    host_tid = rve_cfg["vehicles"].get(rve_cfg.get("host"))
     per_rv: dict[str, list[float]] = defaultdict(list)
+    phantom_rows: dict[str, list[float]] = defaultdict(list)  # id -> tick times
     for row in tracks:
-        tr = truth_xy.get(row["id"])
-        if tr is None:
-            continue  # not a vehicle of this run (garbage that got a track)
+        tr = truth_xy.get(row["id"]) if row["id"] != host_tid else None
+        if tr is None:  # not a remote vehicle of this run: a phantom
+            phantom_rows[row["id"]].append(row["t"])
+            continue
         t, x, y = tr
         td = row["t"] - offset
         if td < t[0] - 1e-6 or td > t[-1] + 1e-6:
@@ -221,6 +224,7 @@ def score(directory: Path) -> dict:
         "warnings": dict(Counter(f"{e['app']}" for e in events if e["kind"] == "start")),
         "events": events,
         "phantom_received": len(ok_all) - len(ok),
+        "phantom": _phantoms(phantom_rows, events, ticks, set(names) - {host_tid}),
         "attacks": attacks,
         "mbd": _detection(attacks, schedule, rx, names, mbr) if attacks and mbr is not None
         else None,
@@ -229,6 +233,22 @@ def score(directory: Path) -> dict:
         "dataset": rve_cfg["dataset"]["name"],
     }
     return result
+
+
+def _phantoms(rows: dict[str, list[float]], events: list[dict], ticks: list[dict],
+              real: set[str]) -> dict:
+    """Tracks the OBU classified whose id no remote vehicle of the run sent (corrupted
+    copies, the host's own id, attackers): how many, how long each lived (s, first to
+    last tick it was in the snapshot), and the warnings they raised (events, and ticks
+    with a warning condition on them)."""
+    life = sorted(round(max(t) - min(t), 3) for t in rows.values())
+    fake_events = [e for e in events if e["kind"] == "start" and e["rv"] not in real]
+    return {"tracks": len(rows), "ids": sorted(rows)[:50],
+            "lifetime_s": {"max": life[-1], "median": life[len(life) // 2]} if life else None,
+            "warnings": len(fake_events),
+            "warning_apps": dict(Counter(e["app"] for e in fake_events)),
+            "warning_ticks": sum(1 for tk in ticks
+                                 if any(w[1] not in real for w in tk["warnings"]))}
 
 
 def _mbr(directory: Path) -> list[dict] | None:
@@ -359,6 +379,11 @@ def table(r: dict) -> str:
                      + ", warnings on fabricated ids: "
                      + (", ".join(f"{k} {v}" for k, v in sorted(a["warnings"].items()))
                         or "none"))
+    ph = r.get("phantom")
+    if ph and ph["tracks"]:
+        lines.append(f"phantom tracks (ids no RV of the run sent): {ph['tracks']}, lived up "
+                     f"to {ph['lifetime_s']['max']} s, warning events {ph['warnings']}, "
+                     f"warning ticks {ph['warning_ticks']}")
     lines.append("warning events: " + (", ".join(f"{k} {v}" for k, v in
                                                  sorted(r["warnings"].items())) or "none"))
     lines.append("PTE95 per RV [m]: " + ", ".join(f"{k} {v}" for k, v in

@@ -20,15 +20,23 @@ What one step does, in order:
 2. **Admission** (each rejection is counted under its reason in :attr:`counters`):
    ``incomplete`` (no position, time, speed or heading), ``implausible`` (speed above
    ``max_speed``), ``late`` (older than ``stale_after_s``), ``future`` (generated more
-   than ``max_future_s`` after ``now``), ``duplicate`` (same time as the RV's last
-   accepted message: a repeat or a replay of it), ``out_of_order`` (older than the RV's
-   last accepted message: a reordered or replayed one), ``jump`` (the position moved
-   farther than physics allows since the last accepted message: ``(max(v_last, v_new)
-   + max_accel·dt)·dt + gnss_tolerance_m``).  When ``reacquire_after`` consecutive
-   ``jump`` rejections are consistent with each other by the same rule, the track is
-   restarted from them (``reacquired``): a track whose *old* data were the outlier must
+   than ``max_future_s`` after ``now``), ``duplicate`` (same time or msgCnt as the RV's
+   last accepted message: a repeat, a replay or a corrupted copy of it), ``out_of_order``
+   (older than the RV's last accepted message: a reordered or replayed one), ``jump``
+   (the position moved farther than physics allows since the last accepted message:
+   ``(max(v_last, v_new) + max_accel·dt)·dt + gnss_tolerance_m``, and no farther than
+   ``½·max_accel·dt² + gnss_tolerance_m`` from where the last message's speed and heading lead),
+   ``inconsistent`` (speed or heading changed more than physics allows:
+   ``|Δv| > max_accel·dt + speed_tolerance``; above 3 m/s ``|Δh| > max_accel/v·dt +
+   heading_tolerance_deg``).  When ``reacquire_after`` consecutive ``jump`` or
+   ``inconsistent`` rejections are consistent with each other by the same rules, the track
+   is restarted from them (``reacquired``): a track whose *old* data were the outlier must
    not be locked out for ever, while random garbage (not self-consistent) never takes a
-   track over.
+   track over.  Before any of these, for ids without a track: ``self`` (the HV's own
+   temporary id, now or within ``stale_after_s``: our own BSM heard back, or a corrupted
+   copy of it, is never a remote vehicle) and ``shadow`` (an id one bit away from a
+   tracked RV's or the HV's, within ``shadow_range_m`` of it: a bit-flipped copy, not a
+   new vehicle).
 3. **Local map**: an accepted message updates its RV's record and predictor and its path
    history.  When it carries Part II pathHistory and follows a gap (a lost message) or
    starts a track, its crumbs from within the gap go into the RV's history first: the
@@ -37,6 +45,14 @@ What one step does, in order:
    the HV is evicted if the newcomer is nearer (``displaced``), else the newcomer is
    dropped (``table_full``): nearby vehicles are the ones the safety applications need.
    RVs silent for more than ``stale_after_s`` are evicted (``evicted_stale``).
+   **Confirmation** (issue 18): a new track is *tentative* (tracked, but not classified,
+   not in the snapshot, no warning) until ``confirm_after`` of its messages have been
+   accepted, each consistent with the one before by the rules above, or
+   ``confirm_near`` when it first appeared within ``near_range_m`` of the HV (a sudden
+   appearance); ``confirmed`` counts them.  At most ``max_tentative`` tentative tracks
+   are kept (the oldest goes: ``tentative_evicted``), and they do not count against
+   ``max_tracks``: garbage that happens to decode can neither raise a warning nor fill
+   the table.
 4. **HV**: its own predictor (``host_predictor``, CTRV as in SAE J2945/1) and path
    history are updated with ``host`` (no loss on the HV channel).  The HV path ahead is
    the arc of radius ``R = v / yaw rate`` (:func:`catc.classify.hv_radius_m`), behind it
@@ -65,6 +81,7 @@ lateral offsets positive to the right.
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from itertools import chain
@@ -109,9 +126,13 @@ _ABS_ENGAGED = 3
 #: Counter names, in the order reports list them.
 COUNTERS = (
     "received", "accepted", "incomplete", "implausible", "late", "future", "duplicate",
-    "out_of_order", "jump", "reacquired", "table_full", "displaced", "evicted_stale",
-    "tracks_created", "ph_crumbs_used", "ticks",
+    "out_of_order", "jump", "inconsistent", "self", "shadow", "reacquired", "table_full",
+    "displaced", "evicted_stale", "tracks_created", "confirmed", "tentative_evicted",
+    "ph_crumbs_used", "ticks",
 )
+
+#: Positions kept per vehicle for the shadow check: 10 s at 10 Hz.
+_RECENT = 100
 
 #: A gap (s) between accepted BSMs beyond which the new BSM's Part II path history is
 #: used to fill the RV's history (more than one 100 ms period: a message was lost).
@@ -152,6 +173,24 @@ class CamConfig:
     gnss_tolerance_m: float = 3.0
     #: Consecutive ``jump`` rejections after which the track restarts from the new data.
     reacquire_after: int = 3
+    #: Speed change (m/s) allowed between messages on top of ``max_accel·dt``: a few
+    #: J2735 speed units of GNSS speed noise.
+    speed_tolerance: float = 1.0
+    #: Heading change (deg) allowed on top of ``max_accel/v·dt`` (the lateral
+    #: acceleration bound), checked above 3 m/s where GNSS heading is meaningful.
+    heading_tolerance_deg: float = 15.0
+    #: Accepted messages a new track needs before it is classified (M of M consecutive
+    #: consistent ones; module docstring, step 3).  3 at 10 Hz: 0.2 s.
+    confirm_after: int = 3
+    #: The same for a track first seen within ``near_range_m`` of the HV (sudden
+    #: appearance: F2MD's and J3287's check): 4 at 10 Hz, 0.3 s.
+    confirm_near: int = 4
+    near_range_m: float = 50.0
+    #: Tentative tracks kept at once.
+    max_tentative: int = 256
+    #: An unknown id one bit away from a tracked RV's or the HV's id and within this
+    #: distance (m) of it is a bit-flipped copy (``shadow``).
+    shadow_range_m: float = 10.0
     #: Allowable error (m) of the CAM's concise path histories.  SAE J2945/1's 1 m is
     #: for what a vehicle transmits; for lane estimation a 1 m chord error is over half
     #: the ±1.8 m lane band.  Measured on the OpenACC platoons (bench/lanes.py
@@ -188,6 +227,9 @@ class CamConfig:
             raise ValueError("CamConfig.stale_after_s must be <= 30 s (secMark spans a minute)")
         if self.max_tracks < 1 or self.reacquire_after < 1:
             raise ValueError("CamConfig.max_tracks and reacquire_after must be >= 1")
+        if self.confirm_after < 1 or self.confirm_near < 1 or self.max_tentative < 1:
+            raise ValueError("CamConfig.confirm_after, confirm_near and max_tentative must "
+                             "be >= 1")
         make_predictor(self.predictor)  # an unknown name fails here, not at the first RV
 
 
@@ -256,8 +298,14 @@ class _Track:
     y: float
     first_t: float
     accepted: int = 1
-    #: The consecutive jump rejections, if they agree with each other: (t, x, y, speed, n).
-    alt: tuple[float, float, float, float, int] | None = None
+    #: The consecutive jump rejections, if they agree with each other:
+    #: (t, x, y, speed, heading, n).
+    alt: tuple[float, float, float, float, float, int] | None = None
+    #: Accepted messages it needs before it is classified (1 once confirmed).
+    need: int = 1
+    #: (t, x, y) of its accepted messages of the last ``stale_after_s`` (the shadow
+    #: check compares a bit-flipped copy with where the vehicle was at the copy's time).
+    recent: deque = field(default_factory=lambda: deque(maxlen=_RECENT))
     fresh_at: float = math.nan  # the step time that last applied a message
     #: What snapshots report of ``bsm``: (accel, length, width, hard braking); set with it.
     bsm_values: tuple[float, float, float, bool] = (0.0, 0.0, 0.0, False)
@@ -395,6 +443,9 @@ class ContextAwareMap:
         self.frame: EnuFrame | None = (EnuFrame(*self.config.origin)
                                        if self.config.origin is not None else None)
         self._tracks: dict[int, _Track] = {}
+        self._tentative: dict[int, None] = {}  # ids of tentative tracks, oldest first
+        self._host_ids: dict[int, float] = {}  # the HV's temporary ids -> last seen
+        self._host_recent: deque = deque(maxlen=_RECENT)  # the HV's (t, x, y)
         self._host_predictor = make_predictor(self.config.host_predictor)
         self._host_history = ConcisePathHistory(tolerance_m=self.config.ph_tolerance_m)
         self._host_t = -math.inf
@@ -402,7 +453,13 @@ class ContextAwareMap:
 
     # -- public ---------------------------------------------------------------------------
     def __len__(self) -> int:
-        return len(self._tracks)
+        """Confirmed tracks (the RVs a snapshot has)."""
+        return len(self._tracks) - len(self._tentative)
+
+    @property
+    def tentative(self) -> int:
+        """Tracks not confirmed yet."""
+        return len(self._tentative)
 
     def history(self, temp_id: int) -> list[tuple[float, float]]:
         """Concise path history of an RV, most recent first (ENU m)."""
@@ -422,10 +479,16 @@ class ContextAwareMap:
         self.counters["ticks"] += 1
         if self.frame is None:
             self.frame = EnuFrame(host.lat, host.lon, 0.0)
+        self._host_ids[host.temp_id] = now
+        if len(self._host_ids) > 1:  # pseudonym changes: forget ids unused for long
+            for tid in [k for k, v in self._host_ids.items()
+                        if now - v > self.config.stale_after_s]:
+                del self._host_ids[tid]
         usable = self._admit_fields(now, messages)
         ex, ny = self.frame.en_lists([host.lat] + [m.lat for _, m in usable],
                                      [host.lon] + [m.lon for _, m in usable])
         host_est = self._update_host(now, host, ex[0], ny[0])
+        self._host_recent.append((now, ex[0], ny[0]))
         for (t, m), x, y in zip(usable, ex[1:], ny[1:], strict=True):
             self._apply(now, t, m, x, y, host_est)
         self._evict_stale(now)
@@ -469,10 +532,17 @@ class ContextAwareMap:
         cnt = self.counters
         tr = self._tracks.get(m.temp_id)
         if tr is None:
+            if m.temp_id in self._host_ids:
+                cnt["self"] += 1
+                return
+            if self._shadows(m.temp_id, t, x, y):
+                cnt["shadow"] += 1
+                return
+            near = math.hypot(x - host.x, y - host.y) <= c.near_range_m
             if not self._make_room(x, y, host):
                 cnt["table_full"] += 1
                 return
-            self._new_track(now, t, m, x, y)
+            self._new_track(now, t, m, x, y, c.confirm_near if near else c.confirm_after)
             return
         if t == tr.t:
             cnt["duplicate"] += 1
@@ -480,19 +550,29 @@ class ContextAwareMap:
         if t < tr.t:
             cnt["out_of_order"] += 1
             return
-        if not self._plausible_move(tr.t, tr.x, tr.y, tr.bsm.speed or 0.0, t, x, y, m.speed):
+        if m.msg_cnt == tr.bsm.msg_cnt:
+            # a corrupted copy of the last message (its time changed): a sender's msgCnt
+            # moves on with every new message and repeats after 128 (12.8 s at 10 Hz,
+            # longer than a track lives without messages)
+            cnt["duplicate"] += 1
+            return
+        speed, heading = m.speed or 0.0, m.heading or 0.0
+        why = self._inconsistency(tr.t, tr.x, tr.y, tr.bsm.speed or 0.0,
+                                  tr.bsm.heading or 0.0, t, x, y, speed, heading)
+        if why is not None:
             alt = tr.alt
-            if alt is not None and t > alt[0] and \
-                    self._plausible_move(alt[0], alt[1], alt[2], alt[3], t, x, y, m.speed):
-                tr.alt = (t, x, y, m.speed, alt[4] + 1)
+            if alt is not None and t > alt[0] and self._inconsistency(
+                    alt[0], alt[1], alt[2], alt[3], alt[4], t, x, y, speed, heading) is None:
+                tr.alt = (t, x, y, speed, heading, alt[5] + 1)
             else:
-                tr.alt = (t, x, y, m.speed, 1)
-            if tr.alt[4] < c.reacquire_after:
-                cnt["jump"] += 1
+                tr.alt = (t, x, y, speed, heading, 1)
+            if tr.alt[5] < c.reacquire_after:
+                cnt[why] += 1
                 return
             cnt["reacquired"] += 1
-            del self._tracks[m.temp_id]
-            self._new_track(now, t, m, x, y)
+            confirmed = tr.need <= 1
+            self._forget(m.temp_id)
+            self._new_track(now, t, m, x, y, 1 if confirmed else c.confirm_after)
             return
         tr.alt = None
         if m.path_history is not None and t - tr.t > _PH_GAP_S:
@@ -503,7 +583,12 @@ class ContextAwareMap:
         tr.fresh_at = now
         tr.predictor.update(_observation(t, x, y, m))
         tr.history.add(t, x, y)
+        tr.recent.append((t, x, y))
         cnt["accepted"] += 1
+        if tr.need > 1 and tr.accepted >= tr.need:
+            tr.need = 1
+            del self._tentative[m.temp_id]
+            cnt["confirmed"] += 1
 
     def _fill_history(self, hist: ConcisePathHistory, m: BSM, t: float,
                       after: float) -> None:
@@ -518,15 +603,56 @@ class ContextAwareMap:
                 used += 1
         self.counters["ph_crumbs_used"] += used
 
-    def _plausible_move(self, t0: float, x0: float, y0: float, v0: float, t: float,
-                        x: float, y: float, v: float) -> bool:
-        """Physics bound on the distance moved from (t0, x0, y0) to (t, x, y)."""
+    def _inconsistency(self, t0: float, x0: float, y0: float, v0: float, h0: float,
+                       t: float, x: float, y: float, v: float, h: float) -> str | None:
+        """Why a message at (t, x, y, speed v, heading h) cannot follow one at (t0, x0,
+        y0, v0, h0) of the same vehicle (``jump``: position, ``inconsistent``: speed or
+        heading), or None when it can (module docstring, step 2)."""
         c = self.config
         dt = t - t0
-        allowed = (max(v0, v) + c.max_accel * dt) * dt + c.gnss_tolerance_m
-        return math.hypot(x - x0, y - y0) <= allowed
+        if math.hypot(x - x0, y - y0) > (max(v0, v) + c.max_accel * dt) * dt + \
+                c.gnss_tolerance_m:
+            return "jump"
+        slack = 0.5 * c.max_accel * dt * dt + c.gnss_tolerance_m
+        r = math.radians(h0)
+        if math.hypot(x - x0 - v0 * dt * math.sin(r), y - y0 - v0 * dt * math.cos(r)) > slack:
+            return "jump"  # not where the last speed and heading lead
+        if abs(v - v0) > c.max_accel * dt + c.speed_tolerance:
+            return "inconsistent"
+        slow = min(v, v0)
+        if slow >= 3.0:
+            turn = abs((h - h0 + 180.0) % 360.0 - 180.0)
+            if turn > math.degrees(c.max_accel / slow * dt) + c.heading_tolerance_deg:
+                return "inconsistent"
+        return None
 
-    def _new_track(self, now: float, t: float, m: BSM, x: float, y: float) -> None:
+    def _shadows(self, temp_id: int, t: float, x: float, y: float) -> bool:
+        """``temp_id`` is one bit away from a tracked RV's id (or the HV's) and the message
+        is within ``shadow_range_m`` of where that vehicle was at the message's time ``t``
+        (its nearest recorded position within 0.2 s): a bit-flipped copy of its BSM, old
+        or new."""
+        r2 = self.config.shadow_range_m ** 2
+        for bit in range(32):
+            other = temp_id ^ (1 << bit)
+            tr = self._tracks.get(other)
+            recent = tr.recent if tr is not None else \
+                self._host_recent if other in self._host_ids else None
+            if not recent:
+                continue
+            for tp, xp, yp in reversed(recent):
+                if tp <= t + 0.2:
+                    if t - tp <= 0.2 and (xp - x) ** 2 + (yp - y) ** 2 <= r2:
+                        return True
+                    if tp < t - 0.2:
+                        break
+        return False
+
+    def _forget(self, temp_id: int) -> bool:
+        self._tentative.pop(temp_id, None)
+        return self._tracks.pop(temp_id, None) is not None
+
+    def _new_track(self, now: float, t: float, m: BSM, x: float, y: float,
+                   need: int = 1) -> None:
         pred = self._new_predictor()
         pred.update(_observation(t, x, y, m))
         hist = ConcisePathHistory(tolerance_m=self.config.ph_tolerance_m)
@@ -534,9 +660,17 @@ class ContextAwareMap:
             self._fill_history(hist, m, t, -math.inf)
         hist.add(t, x, y)
         self._tracks[m.temp_id] = _Track(m.temp_id, pred, hist, m, t, x, y, t, fresh_at=now,
-                                         est_x=x, est_y=y, bsm_values=self._bsm_values(m))
+                                         est_x=x, est_y=y, bsm_values=self._bsm_values(m),
+                                         need=need)
+        self._tracks[m.temp_id].recent.append((t, x, y))
         self.counters["accepted"] += 1
         self.counters["tracks_created"] += 1
+        if need > 1:
+            if len(self._tentative) >= self.config.max_tentative:
+                del self._tracks[next(iter(self._tentative))]
+                del self._tentative[next(iter(self._tentative))]
+                self.counters["tentative_evicted"] += 1
+            self._tentative[m.temp_id] = None
 
     def _bsm_values(self, m: BSM) -> tuple[float, float, float, bool]:
         """:attr:`_Track.bsm_values` of a track whose latest BSM is ``m``."""
@@ -546,16 +680,18 @@ class ContextAwareMap:
 
     def _make_room(self, x: float, y: float, host: HostEstimate) -> bool:
         """True when a new track fits (evicting the farthest RV if the newcomer is nearer)."""
-        if len(self._tracks) < self.config.max_tracks:
+        if len(self) < self.config.max_tracks:
             return True
         far_id, far_d2 = None, -1.0
         for tid, tr in self._tracks.items():
+            if tr.need > 1:
+                continue
             d2 = (tr.est_x - host.x) ** 2 + (tr.est_y - host.y) ** 2
             if d2 > far_d2 or (d2 == far_d2 and far_id is not None and tid > far_id):
                 far_id, far_d2 = tid, d2
         if far_id is None or (x - host.x) ** 2 + (y - host.y) ** 2 >= far_d2:
             return False
-        del self._tracks[far_id]
+        self._forget(far_id)
         self.counters["displaced"] += 1
         return True
 
@@ -563,7 +699,7 @@ class ContextAwareMap:
         """Forget the RV ``temp_id`` now (a misbehaving sender put in quarantine): its track
         and trail go, so it is neither predicted nor warned about; counted ``dropped`` (a
         counter that appears on first use).  False when it was not tracked."""
-        if self._tracks.pop(temp_id, None) is None:
+        if not self._forget(temp_id):
             return False
         self.counters["dropped"] = self.counters.get("dropped", 0) + 1
         return True
@@ -572,7 +708,7 @@ class ContextAwareMap:
         limit = self.config.stale_after_s
         stale = [tid for tid, tr in self._tracks.items() if now - tr.t > limit]
         for tid in stale:
-            del self._tracks[tid]
+            self._forget(tid)
         self.counters["evicted_stale"] += len(stale)
 
     # -- HV ---------------------------------------------------------------------------------
@@ -597,7 +733,7 @@ class ContextAwareMap:
     # -- tracking and classification ---------------------------------------------------------
     def _snapshot(self, now: float, host: HostEstimate) -> MapSnapshot:
         c = self.config
-        tracks = list(self._tracks.values())
+        tracks = [tr for tr in self._tracks.values() if tr.need <= 1]
         n = len(tracks)
         later = now + c.horizon_s
         prepare([tr.predictor for tr in tracks], later)  # the HGP's forecasts, stacked

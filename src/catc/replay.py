@@ -241,18 +241,24 @@ def simulate(the_plan: Plan, cam: ContextAwareMap, wire: bool = True
             pending.append(m)
             continue
         now = clock(m.sec_mark)
-        due, pending = split_due(now, pending)
+        due, pending = split_due(now, pending, cam.config.max_future_s)
         yield cam.step(now, m, due)
 
 
-def split_due(now: float, pending: list[BSM]) -> tuple[list[BSM], list[BSM]]:
+def split_due(now: float, pending: list[BSM], future_s: float = math.inf,
+              ) -> tuple[list[BSM], list[BSM]]:
     """(messages generated at or before ``now``, the rest): what a tick at ``now`` takes.
-    A message without secMark is due at once (the CAM counts it as incomplete)."""
+    A message without secMark is due at once (the CAM counts it as incomplete), and so is
+    one more than ``future_s`` ahead of ``now`` (the CAM counts it as ``future``): held
+    back, a corrupted secMark up to 30 s ahead would keep it in memory that long."""
     from catc.cam import message_time
 
     due: list[BSM] = []
     later: list[BSM] = []
     for p in pending:
-        ok = p.sec_mark is None or message_time(now, p.sec_mark) <= now + 1e-9
-        (due if ok else later).append(p)
+        if p.sec_mark is None:
+            due.append(p)
+            continue
+        ahead = message_time(now, p.sec_mark) - now
+        (due if ahead <= 1e-9 or ahead > future_s else later).append(p)
     return due, later

@@ -252,6 +252,8 @@ class Obu:
         self.counters["frames"] += 1
         self.counters[f"frames_{channel}"] += 1
         self.last_frame = time.monotonic()
+        if channel == "rv":  # any datagram, decodable or not: the channel is not quiet
+            self.last_rv_frame = self.last_frame
         verdict = None
         try:
             frame, envelope = open_envelope(data)
@@ -276,7 +278,6 @@ class Obu:
                                    "hex": data.hex()})
             return
         if channel == "rv":
-            self.last_rv_frame = time.monotonic()
             if self.mbd is not None and self.misbehaves(bsm, rx_unix, data):
                 return
             self.pending.append(bsm)
@@ -320,7 +321,13 @@ class Obu:
         if not self.mbd.quarantined(bsm.temp_id, t):
             return False
         self.counters["mbd_quarantined"] += 1
-        self.pending = [m for m in self.pending if m.temp_id != bsm.temp_id]
+        keep = []
+        for m in self.pending:
+            if m.temp_id == bsm.temp_id:
+                self.pending_rx.pop(id(m), None)
+            else:
+                keep.append(m)
+        self.pending = keep
         if self.cam.drop(bsm.temp_id):
             self.counters["mbd_tracks_dropped"] += 1
         if self.cap is not None:
@@ -348,7 +355,7 @@ class Obu:
             self.log("host", "a host frame without time or position: no tick")
             return None
         now = self.clock(host.sec_mark)
-        due, self.pending = split_due(now, self.pending)
+        due, self.pending = split_due(now, self.pending, self.cam.config.max_future_s)
         t0 = time.perf_counter()
         try:
             snap = self.cam.step(now, host, due)
@@ -416,6 +423,8 @@ class Obu:
 
     def all_counters(self, transport_stats: dict) -> dict:
         out = dict(self.counters)
+        out["pending"] = len(self.pending)  # received, not yet due at a tick
+        out["cam_tentative"] = self.cam.tentative
         out.update({f"cam_{k}": v for k, v in self.cam.counters.items()})
         out.update({f"transport_{k}": v for k, v in transport_stats.items()})
         if self.step_ms:

@@ -92,7 +92,7 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from rve import run, scenario
+    from rve import flood, run, scenario
 
     parser, sub = make_parser("rve", DESCRIPTION)
     r = sub.add_parser("run", help="replay a mobility log as BSMs over UDP or CAN",
@@ -109,6 +109,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--ieee1609", action="store_true",
                    help="wrap each frame in an unsecured IEEE 1609.2 envelope")
     p.set_defaults(func=_encode)
+    f = sub.add_parser("flood", help="garbage at an OBU's RV port (corrupted copies of "
+                                     "the RVE's frames, random and oversize datagrams)",
+                       description=flood.__doc__,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    flood.add_arguments(f)
+    f.set_defaults(func=flood.command)
     s = sub.add_parser("scenario", help="generate a built-in traffic scenario with SUMO",
                        description=scenario.__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -1,0 +1,77 @@
+"""Issue 18's experiment: a second process floods the ``obu run`` process's RV port with
+random bytes, oversize datagrams and bit-flipped, truncated copies of the host's and the
+RVs' real frames while ``rve run`` replays a real OpenACC run; the OBU's warnings, FCW
+accuracy and per-RV PTE95 equal those of the same run without the flood, and its counters
+account for every datagram."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from hil.transport.udp import free_ports
+from tests.conftest import shared_path
+from tests.test_obu import finish, rve, score, start_obu
+
+PY = sys.executable
+RUN = ("--per", "50", "--seed", "7", "--speed", "4", "--duration", "40")
+
+
+def _dataset() -> str:
+    path = shared_path("openacc-zalazone", "short_setting_handling_part36.csv")
+    if not path.exists():
+        pytest.skip(f"shared data not found: {path}")
+    return str(path)
+
+
+def _run(tmp, dataset: str, flood: bool) -> tuple[dict, dict, dict | None]:
+    ports = free_ports()
+    obu = start_obu(tmp, ports, "--predictor", "hgp")
+    flooder = None
+    if flood:  # 40 s of data at speed 4: 10 s; the flood runs a little longer
+        flooder = subprocess.Popen(
+            [PY, "-m", "rve.cli", "flood", "--dataset", dataset, "--to",
+             f"127.0.0.1:{ports[0]}", "--rate", "2000", "--duration", "11", "--per", "50",
+             "--seed", "7", "--speed", "4"], stdout=subprocess.PIPE, text=True)
+    summary = rve(ports, "--dataset", dataset, *RUN, "--capture", str(tmp))
+    flood_out = None
+    if flooder is not None:
+        out, _ = flooder.communicate(timeout=60)
+        assert flooder.returncode == 0
+        flood_out = json.loads(out.strip().splitlines()[-1])
+    finish(obu)
+    counters = json.loads((tmp / "obu.counters.json").read_text())
+    return score(tmp), counters | {"rve_sent": summary["sent"]}, flood_out
+
+
+@pytest.mark.slow
+def test_a_flood_of_garbage_changes_nothing_and_is_accounted_for(tmp_path):
+    dataset = _dataset()
+    (tmp_path / "clean").mkdir()
+    (tmp_path / "flood").mkdir()
+    clean, _, _ = _run(tmp_path / "clean", dataset, flood=False)
+    flooded, c, sent = _run(tmp_path / "flood", dataset, flood=True)
+    assert sent["datagrams"] > 15_000 and sent["sent"]["copy"] > 5_000
+    # nothing the OBU decided changed
+    key = lambda e: (e["app"], e["kind"], e["rv"], e["t"])  # noqa: E731
+    assert sorted(map(key, flooded["events"])) == sorted(map(key, clean["events"]))
+    assert flooded["fcw"] == clean["fcw"]
+    assert flooded["fcw_accuracy"] == clean["fcw_accuracy"]
+    assert flooded["pte95_per_rv"] == clean["pte95_per_rv"]
+    assert flooded["pte95_m"] == clean["pte95_m"]
+    assert flooded["phantom"]["tracks"] == 0 and flooded["phantom"]["warnings"] == 0
+    # every datagram is accounted for: at the socket, then by the decoder, then the CAM
+    assert c["transport_rv"] + c["transport_oversized"] == sent["datagrams"] + c["rve_sent"]
+    assert c["transport_oversized"] == sent["sent"]["oversize"]
+    assert c["frames_rv"] == c["transport_rv"]
+    rv_decode_errors = c["decode_errors"]  # the host channel carries only the RVE's frames
+    cam = {k[4:]: v for k, v in c.items() if k.startswith("cam_")}
+    assert c["frames_rv"] == rv_decode_errors + cam["received"] + c["pending"]
+    dispositions = ("incomplete", "implausible", "late", "future", "self", "shadow",
+                    "duplicate", "out_of_order", "jump", "inconsistent", "table_full",
+                    "accepted")
+    assert cam["received"] == sum(cam[k] for k in dispositions)
+    assert cam["self"] > 0 and cam["shadow"] + cam["self"] > 0

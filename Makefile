@@ -41,15 +41,17 @@ test-vcan: $(VENV)/.installed-test debs
 # Debian packages the tests need: can-utils (the independent CAN peer: candump, canplayer,
 # isotprecv), iproute2 (vcan), qemu-system-x86, busybox-static and kmod (the VM that gives
 # a kernel without SocketCAN one), tshark and openssl (the independent checks of the IEEE
-# 1609.2 frames: Wireshark's dissectors, OpenSSL's ECDSA).  Installed when missing and we
-# are root; otherwise the tests say what is missing.
-DEBS = can-utils iproute2 qemu-system-x86 busybox-static kmod tshark openssl
+# 1609.2 frames: Wireshark's dissectors, OpenSSL's ECDSA), chromium and fonts-dejavu-core
+# (the live view's tests drive the real page in Debian's headless Chromium through
+# Playwright; no browser download).  Installed when missing and we are root; otherwise the
+# tests say what is missing.
+DEBS = can-utils iproute2 qemu-system-x86 busybox-static kmod tshark openssl chromium fonts-dejavu-core
 debs:
 	@missing=$$(for p in $(DEBS); do dpkg -s $$p >/dev/null 2>&1 || echo $$p; done); \
 	if [ -z "$$missing" ]; then exit 0; fi; \
 	if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
 	  echo "debs: installing" $$missing; \
-	  apt-get update -q >/dev/null && DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends can-utils iproute2 qemu-system-x86 busybox-static kmod tshark openssl >/dev/null; \
+	  apt-get update -q >/dev/null && DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends $(DEBS) >/dev/null; \
 	else echo "debs: missing" $$missing "(not root, or no apt-get): the tests that need them say so"; fi
 
 bench: $(VENV)/.installed

@@ -8,6 +8,7 @@ the last half of the run with the first minutes after warm-up: a plateau grows b
 than ``--plateau-mb`` per minute over the second half.
 
     python bench/obu_flood.py [--json] [--minutes 10] [--rate 2000] [--rvs 20]
+    python bench/obu_flood.py --rate 0       # the control: the same run, no flood
 
 Target (issue 18): a 10-minute flood at 2,000 datagrams/s reaches a plateau.
 """
@@ -93,9 +94,10 @@ def main() -> int:
         fl = None
         try:
             time.sleep(1.0)
-            fl = subprocess.Popen([sys.executable, __file__, "--rate", str(args.rate),
-                                   "--flooder", str(ports[0]), str(args.rvs), str(seconds)],
-                                  stdout=subprocess.PIPE, text=True)
+            if args.rate > 0:  # --rate 0: the same run without the flood (the control)
+                fl = subprocess.Popen([sys.executable, __file__, "--rate", str(args.rate),
+                                       "--flooder", str(ports[0]), str(args.rvs),
+                                       str(seconds)], stdout=subprocess.PIPE, text=True)
             start = time.monotonic()
             done = threading.Event()
 
@@ -115,7 +117,8 @@ def main() -> int:
             rve.to, rve.host_to = ("127.0.0.1", ports[0]), ("127.0.0.1", ports[1])
             rve.progress = False
             asyncio.run(replay(rve, _ring_plan(args.rvs, seconds), []))
-            sent = json.loads(fl.communicate(timeout=120)[0].strip().splitlines()[-1])
+            sent = (json.loads(fl.communicate(timeout=120)[0].strip().splitlines()[-1])
+                    if fl is not None else {"sent": {}, "datagrams": 0})
             done.set()
             th.join()
             obu.wait(timeout=120)

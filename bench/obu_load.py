@@ -41,6 +41,7 @@ import os
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -70,15 +71,67 @@ def cpu_seconds(pid: int) -> float:
 MODES = ("off", "on", "signed")
 
 
+class WebClients:
+    """``k`` live-view clients of ``obu run --web`` on their own thread: WebSocket
+    connections that read every state pushed, as the page does (``/ws``), without drawing
+    it (ten Chromium tabs drawing 500 RVs would compete with the OBU for the 2 cores)."""
+
+    def __init__(self, k: int, port: int) -> None:
+        self.k, self.port = k, port
+        self.received = 0
+        self.loop = asyncio.new_event_loop()
+        self.thread = threading.Thread(target=self.loop.run_until_complete,
+                                       args=(self._main(),), daemon=True)
+        self.stop = None
+
+    async def _client(self, session) -> None:
+        import aiohttp
+
+        for _ in range(50):  # the OBU's server comes up within a second or so
+            try:
+                async with session.ws_connect(f"http://127.0.0.1:{self.port}/ws") as ws:
+                    async for msg in ws:
+                        if msg.type == aiohttp.WSMsgType.TEXT:
+                            json.loads(msg.data)
+                            self.received += 1
+                    return
+            except aiohttp.ClientError:
+                await asyncio.sleep(0.1)
+
+    async def _main(self) -> None:
+        import aiohttp
+
+        self.stop = asyncio.Event()
+        async with aiohttp.ClientSession() as session:
+            tasks = [asyncio.create_task(self._client(session)) for _ in range(self.k)]
+            await asyncio.wait(tasks)
+
+    def __enter__(self) -> WebClients:
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.thread.join(timeout=30)
+
+
 def measure(n: int, per: float, predictor: str, seconds: float, capture: bool,
-            verify: str = "off") -> dict:
+            verify: str = "off", web_clients: int | None = None) -> dict:
     ports = free_ports()
+    web_port = None
+    if web_clients is not None:
+        import socket
+
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            web_port = s.getsockname()[1]
     with tempfile.TemporaryDirectory() as tmp:
         cmd = [sys.executable, "-m", "obu.cli", "run", "--listen", f"127.0.0.1:{ports[0]}",
                "--host-listen", f"127.0.0.1:{ports[1]}", "--predictor", predictor,
                "--idle-exit", "2", "--no-progress", "--warnings", os.devnull]
         if capture:
             cmd += ["--capture", str(Path(tmp) / "capture")]
+        if web_port is not None:
+            cmd += ["--web", str(web_port)]
         pki_dir = None
         if verify != "off":  # a pseudonym per RV (the ring has N RVs and the host)
             pki_dir = Path(tmp) / "pki"
@@ -97,10 +150,15 @@ def measure(n: int, per: float, predictor: str, seconds: float, capture: bool,
             late: list[float] = []
             cpu0, wall0 = cpu_seconds(obu.pid), time.monotonic()
             rve_cpu0, busy0 = time.process_time(), machine_busy_seconds()
+            clients = WebClients(web_clients or 0, web_port) if web_port else None
+            if clients is not None:
+                clients.__enter__()
             counts = asyncio.run(replay(args, the_plan, late))
             rve_cpu1, busy1 = time.process_time(), machine_busy_seconds()
             cpu1, wall1 = cpu_seconds(obu.pid), time.monotonic()
             _, err = obu.communicate(timeout=120)
+            if clients is not None:
+                clients.__exit__(None, None, None)
         finally:
             if obu.poll() is None:
                 obu.kill()
@@ -113,6 +171,8 @@ def measure(n: int, per: float, predictor: str, seconds: float, capture: bool,
     wall = wall1 - wall0
     late_ms = np.array(late) * 1e3 if late else np.zeros(1)
     return {"rvs": n, "per": per, "predictor": predictor, "verify": verify,
+            "web_clients": web_clients,
+            "web_states_received": clients.received if web_port else None,
             "socket_loss": sent - got, "frames_sent": sent,
             "tick_ms_p50": c.get("tick_ms_p50"), "tick_ms_p99": c.get("tick_ms_p99"),
             "tick_ms_max": c.get("tick_ms_max"), "deadline_misses": c.get("deadline_misses", 0),
@@ -183,13 +243,19 @@ def main(argv: list[str] | None = None) -> int:
                          "(plain UPER), signed (signed, the OBU does not verify), a list "
                          "such as off,on, or both (= off,on); --verify alone is on; "
                          "default off")
+    ap.add_argument("--web-clients", metavar="K,...",
+                    help="the OBU serves its live view (obu run --web) and K clients read "
+                         "every state it pushes, one row per K (e.g. 0,10: the same cell "
+                         "with none and with ten connected, in one run)")
     args = ap.parse_args(argv)
+    webs = ([int(v) for v in args.web_clients.split(",")] if args.web_clients else [None])
     rows = []
     for n in (int(v) for v in args.rvs.split(",")):
         for per in (float(v) for v in args.per.split(",")):
             for p in args.predictors.split(","):
                 for mode in args.verify:
-                    rows.append(measure(n, per, p, args.seconds, args.capture, mode))
+                    for k in webs:
+                        rows.append(measure(n, per, p, args.seconds, args.capture, mode, k))
                     if not args.json:
                         print(f"  done {n} RVs PER {per:g} % {p} verify {mode}",
                               file=sys.stderr)
@@ -216,6 +282,11 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['rve_cpu_percent']:>9.1f} "
               f"{r['rve_late_ms_p99']:>9.2f}/{r['rve_late_ms_max']:<9.2f} "
               f"{r['signed_per_s']:>8.0f} {r['other_cpu_percent']:>11.1f}  {_verify_cell(r)}")
+    for r in rows:
+        if r["web_clients"] is not None:
+            print(f"  web clients {r['web_clients']:>2} ({r['rvs']} RVs PER {r['per']:g} % "
+                  f"{r['predictor']}): tick p99 {r['tick_ms_p99']:.1f} ms, states read "
+                  f"{r['web_states_received']}")
     if any("vs_off" in r for r in rows):
         print("p99 x, CPU x: the row's tick p99 and OBU CPU over those of the verify-off row "
               "of the same cell")

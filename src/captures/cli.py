@@ -24,6 +24,7 @@ from captures import (
     sweep,
     train_bank,
     train_nn,
+    view,
 )
 from catc.cliargs import dispatch, make_parser
 
@@ -39,7 +40,8 @@ Capture-and-score post analysis for the V2X testbench.
   score        PTE, FCW accuracy and counts of an `rve run` + `obu run` capture
   sweep        PER x rate x predictor x dataset: the paper's tables, on real data
   train-bank   train the HGP kernel bank on real trips (Algorithm 1)
-  train-nn     train the neural baselines (AE, LSTM; direct and indirect) on real trips"""
+  train-nn     train the neural baselines (AE, LSTM; direct and indirect) on real trips
+  view         the OBU live view's page over a finished capture (play, slider, warnings)"""
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -53,6 +55,7 @@ def main(argv: list[str] | None = None) -> int:
     sweep.register(sub)
     train_bank.register(sub)
     train_nn.register(sub)
+    view.register(sub)
     return dispatch(parser, argv)
 
 

@@ -132,7 +132,20 @@ def nyc_fcw_event(path: Path) -> None:
     print("   a stuck speed field; with its real speed no FCW fires (docs/catc.md).")
 
 
-def hil_run(out: Path, per: float, speed: float, predictor: str) -> int:
+def _free_tcp_port(preferred: int) -> int:
+    import socket
+
+    for port in (preferred, 0):
+        with socket.socket() as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return s.getsockname()[1]
+    raise OSError("no free TCP port")
+
+
+def hil_run(out: Path, per: float, speed: float, predictor: str, web: bool = True) -> int:
     """The RVE -> OBU run over UDP on loopback, then the score (module docstring, 1)."""
     from captures.score import score, table
 
@@ -140,9 +153,15 @@ def hil_run(out: Path, per: float, speed: float, predictor: str) -> int:
           f"{per:g} %, {predictor}, {speed:g}x speed (capture in {out})")
     if out.exists():
         shutil.rmtree(out)
+    obu_flags = ["--predictor", predictor]
+    if web:
+        port = _free_tcp_port(8750)
+        obu_flags += ["--web", str(port)]
+        print(f"   live view of the OBU while it runs: http://127.0.0.1:{port}/ "
+              f"(afterwards: captures view {out}; --no-web skips it)", flush=True)
     try:
         warnings = run_daemons(out, ["--per", str(per), "--speed", str(speed), "--seed", "1"],
-                               ["--predictor", predictor])
+                               obu_flags)
     except LiveError as err:
         print(f"   failed: {err}")
         return 1
@@ -175,9 +194,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--per", type=float, default=50.0, help="packet error rate, %% (50)")
     ap.add_argument("--speed", type=float, default=4.0, help="replay speed factor (4)")
     ap.add_argument("--predictor", default="hgp", help="the OBU's predictor (hgp)")
+    ap.add_argument("--no-web", action="store_true",
+                    help="no live view (obu run --web) during the run")
     args = ap.parse_args(argv)
     print("catc-hil demo: the V2X hardware-in-the-loop testbench on its built-in scenario\n")
-    status = hil_run(args.out, args.per, args.speed, args.predictor)
+    status = hil_run(args.out, args.per, args.speed, args.predictor, web=not args.no_web)
     print()
     event = args.data / "cv-pilot-samples" / "nycdot-fcw-event.json"
     if event.is_file():
@@ -191,7 +212,8 @@ def main(argv: list[str] | None = None) -> int:
     else:
         print(f"3. skipped: no real vectors at {vectors} (pass --data DIR)")
     quantization_check()
-    print(f"\nTry: .venv/bin/captures score {args.out}")
+    print(f"\nTry: .venv/bin/captures view {args.out}      # the run in the browser")
+    print(f"     .venv/bin/captures score {args.out}")
     print(f"     .venv/bin/captures plot {args.out} --gif")
     print("     .venv/bin/captures decode ../shared/data/jpo-ode-bsm-vectors/rxMsg_BSM.bin")
     print("     .venv/bin/captures replay --dataset nyc:" + str(event))

@@ -69,11 +69,16 @@ DEFAULTS = {
     "predictor": "hgp", "capture": None, "duration": None, "idle_exit": None,
     "warnings": None, "collect_ms": 5.0, "can_interface": "virtual", "can_channel": None,
     "can_fd": False, "progress": True, "max_tracks": 1000, "verify": "off", "trust": None,
-    "mbd": False,
+    "mbd": False, "web": None,
 }
 
 #: The host's BSM period: a step slower than this misses its deadline.
 TICK_S = 0.1
+
+
+def _web_address(text: str) -> tuple[str, int]:
+    """``PORT`` (on 127.0.0.1) or ``HOST:PORT``."""
+    return address(text if ":" in text else f"127.0.0.1:{text}")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -105,6 +110,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--trust", metavar="PATH",
                    help="trust store for --verify: a PKI directory (rve pki init: its root "
                         "is trusted, its AA known) or a root certificate .oer file")
+    p.add_argument("--web", type=_web_address, metavar="[HOST:]PORT",
+                   help="serve the live view (a web page of the map, /api/state) here; "
+                        "127.0.0.1 unless a host is named; off by default")
     p.add_argument("--mbd", action="store_true", default=None,
                    help="misbehavior detection (catc.mbd: F2MD's plausibility checks) on "
                         "every RV frame that passes verification: detections go to "
@@ -246,6 +254,8 @@ class Obu:
         self.host = None  # the host frame that triggers the next tick
         self.last_frame = time.monotonic()
         self.last_rv_frame = 0.0
+        self.web = None  # the live view's hub (obu.web.Hub) when --web is on
+        self.frames_per_s = 0.0
 
     def frame(self, channel: str, data: bytes, rx_unix: float) -> None:
         """One received frame: decode it; an HV frame also steps the CAM."""
@@ -371,7 +381,24 @@ class Obu:
         decided = time.time()
         received = [(m, *self.pending_rx.pop(id(m), (None, b"", None))) for m in due]
         self._outputs(snap, host, ms, decided, received)
+        if self.web is not None and (self.web.clients or self.web.polled):
+            self._publish(snap, host)
         return snap
+
+    def _publish(self, snap: MapSnapshot, host) -> None:
+        """The tick's state to the live view (after the step: not in its time)."""
+        from obu.web import tick_state
+
+        c = self.counters
+        ms = self.step_ms
+        recent = list(ms)[-600:]  # the last minute of ticks
+        panel = {"frames_per_s": round(self.frames_per_s), "decode_errors":
+                 c["decode_errors"], "rejected": c["verify_rejected"] + c["mbd_quarantined"],
+                 "tick_p50": round(float(np.percentile(recent, 50)), 2),
+                 "tick_p99": round(float(np.percentile(recent, 99)), 2),
+                 "deadline_misses": c["deadline_misses"], "tentative": self.cam.tentative}
+        self.web.publish(tick_state(snap, host.sec_mark, _track_rows(snap, host.sec_mark),
+                                    panel))
 
     def _outputs(self, snap: MapSnapshot, host, ms: float, decided: float,
                  received: list) -> None:
@@ -404,7 +431,8 @@ class Obu:
         cap.ticks.write({
             "t": snap.t, "sec_mark": host.sec_mark, "host": [round(snap.host.x, 4),
                                                             round(snap.host.y, 4)],
-            "host_speed": round(snap.host.speed, 3), "tracked": len(snap),
+            "host_speed": round(snap.host.speed, 3),
+            "host_heading": round(snap.host.heading, 3), "tracked": len(snap),
             "step_ms": round(ms, 3), "decided_unix": decided,
             "warnings": [[w.app, f"{w.rv_id:08X}", round(w.range_m, 3),
                           round(w.threshold_m, 3) if w.threshold_m == w.threshold_m
@@ -467,6 +495,15 @@ async def serve(args: argparse.Namespace) -> dict:
             arrived.set()
 
     pumping = asyncio.create_task(pump())
+    runner = None
+    if args.web:
+        from obu.web import Hub, make_app, start
+
+        obu.web = Hub()
+        runner = await start(make_app(obu.web), *args.web)
+        host_, port_ = args.web
+        shown = f"[{host_}]" if ":" in host_ else host_
+        print(f"obu: live view at http://{shown}:{port_}/", file=sys.stderr, flush=True)
     started = time.monotonic()
     last_status, frames_at_status = started, 0
     collect_s = max(0.0, args.collect_ms) / 1000.0
@@ -502,6 +539,7 @@ async def serve(args: argparse.Namespace) -> dict:
             now = time.monotonic()
             if now - last_status >= 1.0:
                 fps = (obu.counters["frames"] - frames_at_status) / (now - last_status)
+                obu.frames_per_s = fps
                 last_status, frames_at_status = now, obu.counters["frames"]
                 if args.progress:
                     print(obu.status(fps), file=sys.stderr, flush=True)
@@ -511,6 +549,8 @@ async def serve(args: argparse.Namespace) -> dict:
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.remove_signal_handler(sig)
         pumping.cancel()
+        if runner is not None:
+            await runner.cleanup()
         counters = obu.all_counters(rx.stats)
         await rx.aclose()
         if obu.cap is not None:
@@ -520,10 +560,34 @@ async def serve(args: argparse.Namespace) -> dict:
     return counters
 
 
+#: glibc's mallopt parameter M_MMAP_THRESHOLD.
+_M_MMAP_THRESHOLD = -3
+
+
+def fix_mmap_threshold(size: int = 128 * 1024) -> bool:
+    """Fix glibc's mmap threshold (True when set; False off glibc).  asyncio reads every
+    datagram into a 256 kB buffer and shrinks it to the datagram's size; with glibc's
+    dynamic threshold those buffers soon come from the heap, and a flood of datagrams of
+    every size fragments it: the OBU's RSS crept up by ~0.65 MB/min under
+    bench/obu_flood.py (0.09 MB/min without the flood).  A fixed threshold keeps them
+    mmapped, returned to the system when freed."""
+    import ctypes
+    import ctypes.util
+
+    name = ctypes.util.find_library("c")
+    if not name or not sys.platform.startswith("linux"):
+        return False
+    try:
+        return bool(ctypes.CDLL(name).mallopt(_M_MMAP_THRESHOLD, size))
+    except (OSError, AttributeError):
+        return False
+
+
 def run(args: argparse.Namespace) -> int:
     """``obu run`` after flags and config are merged; the exit status."""
     from hil.transport import TransportError
 
+    fix_mmap_threshold()
     if args.max_tracks is not None and args.max_tracks < 1:
         print("obu run: --max-tracks must be >= 1", file=sys.stderr)
         return 2

@@ -70,10 +70,15 @@ def _q(quantity: u.Quantity, raw: int) -> float | None:
 
 
 _brake_cache: dict[int, BrakeStatus] = {}
+#: Entries kept: real traffic uses a few combinations; a flood of garbage that decodes
+#: would otherwise fill all 24,576 valid ones (~10 MB, measured growing under
+#: bench/obu_flood.py).
+_BRAKE_CACHE_MAX = 1024
 
 
 def _brakes(raw: int) -> BrakeStatus:
-    """BrakeSystemStatus from its 15 bits (cached: real traffic uses few combinations)."""
+    """BrakeSystemStatus from its 15 bits (cached, bounded: real traffic uses few
+    combinations)."""
     b = _brake_cache.get(raw)
     if b is None:
         boost = (raw >> 2) & 3
@@ -81,7 +86,8 @@ def _brakes(raw: int) -> BrakeStatus:
             raise DecodeError("out-of-range", f"brakeBoost={boost} outside 0..2")
         b = BrakeStatus(raw >> 10, ControlStatus((raw >> 8) & 3), ControlStatus((raw >> 6) & 3),
                         ControlStatus((raw >> 4) & 3), BrakeBoost(boost), AuxBrakes(raw & 3))
-        _brake_cache[raw] = b
+        if len(_brake_cache) < _BRAKE_CACHE_MAX:
+            _brake_cache[raw] = b
     return b
 
 

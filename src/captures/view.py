@@ -1,0 +1,98 @@
+"""``captures view DIR``: the OBU live view's page over a finished capture.
+
+The same page ``obu run --web`` serves (``obu.web``), in replay mode: play, pause, speed and
+a time slider over the OBU's ticks, and the list of warning events (a click jumps to its
+moment).  Each tick shows what the OBU tracked (``obu.tracks.jsonl``), its warnings
+(``obu.ticks.jsonl``) and, where the capture has the RVE's ground truth
+(``rve.truth.jsonl``), every vehicle's true position, on the OBU's clock and ENU frame.
+``/api/state?tick=N`` returns tick N as JSON, ``/api/ticks`` the tick times and events.
+
+    captures view DIR [--web [HOST:]PORT]      (default 127.0.0.1:8750; Ctrl-C stops it)
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import signal
+import sys
+from pathlib import Path
+
+DEFAULT_PORT = 8750
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    from obu.run import _web_address
+
+    p = sub.add_parser("view", help="the live view's page over a finished capture",
+                       description=__doc__,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("dir", type=Path, metavar="DIR", help="capture directory (obu run --capture)")
+    p.add_argument("--web", type=_web_address, default=("127.0.0.1", DEFAULT_PORT),
+                   metavar="[HOST:]PORT", help=f"where to serve (default 127.0.0.1:{DEFAULT_PORT})")
+    p.set_defaults(func=run)
+
+
+def load(directory: Path):
+    """The capture as an :class:`obu.web.Replay` (ValueError with the reason)."""
+    from captures.score import ScoreError, _lines, clock_offset, read_capture, truth_in_frame
+    from obu.web import Replay
+
+    directory = Path(directory)
+    ticks_path = directory / "obu.ticks.jsonl"
+    if not ticks_path.is_file():
+        raise ValueError(f"{directory}: no obu.ticks.jsonl (not an obu run --capture)")
+    truth = None
+    counters = {}
+    if (directory / "obu.counters.json").is_file():
+        counters = json.loads((directory / "obu.counters.json").read_text())
+    if (directory / "rve.truth.jsonl").is_file():
+        try:
+            cap = read_capture(directory, rx=False)
+        except ScoreError as err:
+            raise ValueError(str(err)) from None
+        offset = clock_offset(cap["truth"], cap["ticks"][0], directory)
+        truth = {tid: (t + offset, x, y) for tid, (_, t, x, y)
+                 in truth_in_frame(cap["truth"], cap["obu_cfg"]["origin"]).items()}
+        ticks, tracks, events = cap["ticks"], cap["tracks"], cap["events"]
+    else:
+        ticks = _lines(ticks_path)
+        tracks = _lines(directory / "obu.tracks.jsonl")
+        ev = directory / "obu.events.jsonl"
+        events = _lines(ev) if ev.is_file() else []
+    if not ticks:
+        raise ValueError(f"{directory}: the OBU recorded no tick")
+    return Replay(ticks, tracks, events, truth, counters)
+
+
+async def _serve(replay, host: str, port: int) -> None:
+    from obu.web import make_app, start
+
+    runner = await start(make_app(replay=replay), host, port)
+    shown = f"[{host}]" if ":" in host else host
+    print(f"captures view: {len(replay)} ticks at http://{shown}:{port}/ (Ctrl-C stops)",
+          file=sys.stderr, flush=True)
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    try:
+        await stop.wait()
+    finally:
+        await runner.cleanup()
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        replay = load(args.dir)
+    except (ValueError, OSError, KeyError) as err:
+        print(f"captures view: {err}", file=sys.stderr)
+        return 2
+    try:
+        asyncio.run(_serve(replay, *args.web))
+    except OSError as err:
+        print(f"captures view: cannot serve on {args.web[0]}:{args.web[1]}: {err}",
+              file=sys.stderr)
+        return 2
+    return 0

@@ -1,0 +1,230 @@
+"""The live view: a web page of the OBU's map, served by ``obu run --web HOST:PORT`` from the
+OBU process itself, and by ``captures view DIR`` over a finished capture.
+
+One aiohttp application on the daemon's asyncio loop (aiohttp: a maintained asyncio HTTP
+and WebSocket server, so the page shares the loop instead of a thread or a process):
+
+* ``GET /``: the page (plain HTML, CSS and JavaScript shipped as package data in
+  ``obu/web/``; no build step, nothing loaded from the internet).
+* ``GET /api/state``: the current tick (live) or, with ``?tick=N`` (replay), tick N, as
+  JSON: what the page shows.  ``GET /api/ticks`` (replay): the number of ticks, their
+  times and the warning events, for the slider and the warning list.
+* ``GET /ws``: a WebSocket that pushes each tick's state.  Each browser has one slot that
+  holds the newest state; a browser that is slow misses states, it never makes a queue
+  grow, and a browser that goes away is forgotten.  Nothing a browser sends is read: the
+  page cannot change what the OBU does.
+
+Unknown paths give 404, a malformed query 400.
+
+The state of a tick (:func:`tick_state`): ``t``, the host (x, y, heading, speed, path
+radius, predicted pose), every tracked RV (id, x, y, heading, speed, zone now and
+predicted, fresh or predicted with the age of its last BSM, predicted position), the
+warnings with their range and threshold, and the counters of the panel.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+from collections.abc import Callable
+from importlib import resources
+
+from aiohttp import WSMsgType, web
+
+STATIC = {"index.html": "text/html", "app.js": "application/javascript",
+          "style.css": "text/css"}
+
+
+def tick_state(snap, host_sec_mark: int | None, rows: list[dict], panel: dict,
+               truth: list[dict] | None = None) -> dict:
+    """The JSON-ready state of one tick from a :class:`catc.cam.MapSnapshot` and its track
+    rows (``obu.run._track_rows``)."""
+    h = snap.host
+    radius = h.radius_m if math.isfinite(h.radius_m) else None
+    pp = h.predicted_path
+    return {
+        "t": round(snap.t, 3), "sec_mark": host_sec_mark,
+        "host": {"x": round(h.x, 3), "y": round(h.y, 3), "heading": round(h.heading, 3),
+                 "speed": round(h.speed, 3), "radius": radius, "length": h.length,
+                 "width": h.width, "pred": [round(pp.x, 3), round(pp.y, 3)]},
+        "horizon_s": snap.horizon_s,
+        "rvs": [_rv(r) for r in rows],
+        "warnings": [[w.app, f"{w.rv_id:08X}", round(w.range_m, 2),
+                      round(w.threshold_m, 2) if w.threshold_m == w.threshold_m else None]
+                     for w in snap.warnings],
+        "panel": panel, "truth": truth or [],
+    }
+
+
+def _rv(r: dict) -> dict:
+    return {"id": r["id"], "x": round(r["x"], 3), "y": round(r["y"], 3),
+            "heading": r["heading"], "speed": r["speed"], "zone": r["zone"],
+            "pzone": r["predicted_zone"], "fresh": r["fresh"], "age": r["age"],
+            "source": r["source"], "px": round(r["predicted_x"], 3),
+            "py": round(r["predicted_y"], 3)}
+
+
+class Hub:
+    """The newest state and the browsers connected to it (see the module docstring)."""
+
+    def __init__(self) -> None:
+        self.latest: str | None = None
+        self.clients: set[_Client] = set()
+        self.dropped = 0  # states a browser missed because it was still sending
+        #: Someone asked /api/state: states are built from then on even with no browser
+        #: (before, the OBU builds none: no cost when nobody looks).
+        self.polled = False
+
+    def publish(self, state: dict) -> None:
+        self.latest = json.dumps(state, separators=(",", ":"))
+        for c in self.clients:
+            if c.slot is not None:
+                self.dropped += 1
+            c.slot = self.latest
+            c.ready.set()
+
+
+class _Client:
+    def __init__(self) -> None:
+        self.slot: str | None = None
+        self.ready = asyncio.Event()
+
+
+def make_app(hub: Hub | None = None, replay: Replay | None = None) -> web.Application:
+    """The application: live over ``hub``, or a finished capture's ``replay``."""
+    app = web.Application()
+    pkg = resources.files("obu").joinpath("web")
+
+    def static(name: str) -> Callable:
+        async def handler(_request: web.Request) -> web.Response:
+            text = pkg.joinpath(name).read_text(encoding="utf-8")
+            if name == "index.html":
+                text = text.replace("__MODE__", "replay" if replay else "live")
+            return web.Response(text=text, content_type=STATIC[name])
+        return handler
+
+    async def state(request: web.Request) -> web.Response:
+        if replay is not None:
+            raw = request.query.get("tick", "0")
+            try:
+                i = int(raw)
+            except ValueError:
+                raise web.HTTPBadRequest(text=f"tick must be an integer, got {raw!r}") \
+                    from None
+            if not 0 <= i < len(replay):
+                raise web.HTTPBadRequest(text=f"tick {i} outside 0..{len(replay) - 1}")
+            return web.json_response(text=json.dumps(replay.state(i)))
+        if set(request.query) - {"_"}:
+            raise web.HTTPBadRequest(text="the live state takes no query")
+        if hub is not None:
+            hub.polled = True
+        if hub is None or hub.latest is None:
+            return web.json_response({"t": None, "rvs": [], "warnings": []})
+        return web.json_response(text=hub.latest)
+
+    async def ticks(_request: web.Request) -> web.Response:
+        if replay is None:
+            raise web.HTTPNotFound(text="live view: no tick list")
+        return web.json_response(replay.index())
+
+    async def ws(request: web.Request) -> web.WebSocketResponse:
+        sock = web.WebSocketResponse(heartbeat=10.0)
+        await sock.prepare(request)
+        if hub is None:
+            await sock.close()
+            return sock
+        client = _Client()
+        hub.clients.add(client)
+        if hub.latest is not None:
+            client.slot = hub.latest
+            client.ready.set()
+
+        async def drain() -> None:  # read (and ignore) what the browser sends: closes
+            async for msg in sock:
+                if msg.type in (WSMsgType.ERROR, WSMsgType.CLOSE):
+                    break
+
+        reader = asyncio.create_task(drain())
+        try:
+            while not sock.closed and not reader.done():
+                waiter = asyncio.create_task(client.ready.wait())
+                await asyncio.wait({waiter, reader}, return_when=asyncio.FIRST_COMPLETED)
+                waiter.cancel()
+                if reader.done():
+                    break
+                client.ready.clear()
+                text, client.slot = client.slot, None
+                if text is not None:
+                    await sock.send_str(text)
+        except (ConnectionResetError, RuntimeError):
+            pass
+        finally:
+            hub.clients.discard(client)
+            reader.cancel()
+        return sock
+
+    app.router.add_get("/", static("index.html"))
+    app.router.add_get("/app.js", static("app.js"))
+    app.router.add_get("/style.css", static("style.css"))
+    app.router.add_get("/api/state", state)
+    app.router.add_get("/api/ticks", ticks)
+    app.router.add_get("/ws", ws)
+    return app
+
+
+async def start(app: web.Application, host: str, port: int) -> web.AppRunner:
+    """Serve ``app`` on ``host:port`` on the running loop; the runner, for cleanup."""
+    runner = web.AppRunner(app, access_log=None, handle_signals=False)
+    await runner.setup()
+    await web.TCPSite(runner, host, port).start()
+    return runner
+
+
+class Replay:
+    """A finished capture as tick states (``captures view``): the OBU's ticks, tracks and
+    events, joined with the RVE's ground truth when the capture has it."""
+
+    def __init__(self, ticks: list[dict], tracks: list[dict], events: list[dict],
+                 truth: dict | None, counters: dict) -> None:
+        self.ticks = ticks
+        self.events = events
+        self.by_t: dict[float, list[dict]] = {}
+        for r in tracks:
+            self.by_t.setdefault(round(r["t"], 3), []).append(r)
+        self.truth = truth  # id -> (t array, x array, y array), on the OBU's clock
+        self.counters = counters
+
+    def __len__(self) -> int:
+        return len(self.ticks)
+
+    def index(self) -> dict:
+        return {"ticks": len(self.ticks), "t": [tk["t"] for tk in self.ticks],
+                "events": [e for e in self.events if e.get("kind") == "start"]}
+
+    def state(self, i: int) -> dict:
+        import numpy as np
+
+        tk = self.ticks[i]
+        t = round(tk["t"], 3)
+        rows = self.by_t.get(t, [])
+        truth = []
+        if self.truth:
+            for tid, (tt, xx, yy) in self.truth.items():
+                if tt[0] - 1e-6 <= t <= tt[-1] + 1e-6:
+                    truth.append({"id": tid, "x": round(float(np.interp(t, tt, xx)), 3),
+                                  "y": round(float(np.interp(t, tt, yy)), 3)})
+        hx, hy = tk["host"]
+        return {
+            "t": t, "sec_mark": tk.get("sec_mark"), "tick": i,
+            "host": {"x": hx, "y": hy, "heading": tk.get("host_heading", 0.0),
+                     "speed": tk.get("host_speed", 0.0), "radius": None, "length": 4.8,
+                     "width": 1.9, "pred": None},
+            "horizon_s": 2.0,
+            "rvs": [_rv(r) for r in rows],
+            "warnings": [[w[0], w[1], w[2], w[3]] for w in tk.get("warnings", [])],
+            "panel": {"tracked": tk.get("tracked", len(rows)), "tick_ms": tk.get("step_ms"),
+                      "decode_errors": self.counters.get("decode_errors", 0),
+                      "rejected": self.counters.get("verify_rejected", 0)},
+            "truth": truth,
+        }

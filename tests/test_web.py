@@ -1,0 +1,184 @@
+"""The live view (obu.web) in a real browser: Debian's headless Chromium driven by
+Playwright (``make debs`` installs chromium; no browser download), against a live
+``obu run --web`` fed by ``rve run`` on the default scenario, and ``captures view`` over
+the capture.  Screenshots go to ``out/test-artifacts/``."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+from hil.transport.udp import free_ports
+from tests.test_obu import finish, start_obu
+
+PY = sys.executable
+CHROMIUM = "/usr/bin/chromium"
+ARTIFACTS = Path(__file__).resolve().parents[1] / "out" / "test-artifacts"
+
+sync_api = pytest.importorskip("playwright.sync_api", reason="playwright (test extra)")
+if not Path(CHROMIUM).exists():
+    pytest.skip("Debian's chromium is not installed (make debs installs it)",
+                allow_module_level=True)
+
+
+def _port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _get(url: str) -> tuple[int, bytes]:
+    try:
+        with urllib.request.urlopen(url, timeout=5) as r:
+            return r.status, r.read()
+    except urllib.error.HTTPError as err:
+        return err.code, err.read()
+
+
+def _wait_http(url: str, seconds: float = 10.0) -> None:
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        try:
+            _get(url)
+            return
+        except OSError:
+            time.sleep(0.1)
+    raise AssertionError(f"{url} did not answer")
+
+
+@pytest.fixture(scope="module")
+def browser():
+    with sync_api.sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"])
+        yield b
+        b.close()
+
+
+def _same_tick_counts(page, state_url: str, tries: int = 200) -> tuple[int, int, float]:
+    """(RVs drawn, RVs in /api/state, t) at a tick where the page and the API agree on
+    the time."""
+    for _ in range(tries):
+        s = json.loads(_get(state_url)[1])
+        # both attributes in one call: the page may draw the next tick in between
+        t_page, n_page = page.evaluate(
+            "() => { const m = document.getElementById('map'); "
+            "return [m.dataset.t, +(m.dataset.rvs || 0)]; }")
+        if s.get("t") is not None and t_page and float(t_page) == s["t"]:
+            return n_page, len(s["rvs"]), s["t"]
+        time.sleep(0.02)
+    raise AssertionError("the page never showed the tick /api/state returned")
+
+
+@pytest.mark.slow
+def test_live_view_in_chromium(browser, tmp_path):
+    ports = free_ports()
+    web = _port()
+    base = f"http://127.0.0.1:{web}"
+    obu = start_obu(tmp_path, ports, "--predictor", "hgp", "--web", str(web))
+    _wait_http(base + "/")
+    page = browser.new_page(viewport={"width": 1280, "height": 800})
+    page.goto(base + "/")
+    rve = subprocess.Popen([PY, "-m", "rve.cli", "run", "--to", f"127.0.0.1:{ports[0]}",
+                            "--host-to", f"127.0.0.1:{ports[1]}", "--no-progress", "--speed",
+                            "2", "--duration", "26", "--capture", str(tmp_path)],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        page.wait_for_function("+document.getElementById('map').dataset.rvs > 0",
+                               timeout=20_000)
+        drawn, listed, _ = _same_tick_counts(page, base + "/api/state")
+        assert drawn == listed > 0
+        # the leader brakes at 20 s of data: the FCW banner
+        page.wait_for_selector("#banner:not(.hidden)", timeout=30_000)
+        banner = page.inner_text("#banner")
+        deadline = time.monotonic() + 20
+        while "FCW" not in banner and time.monotonic() < deadline:
+            time.sleep(0.05)
+            banner = page.inner_text("#banner")
+        assert "FCW" in banner and "range" in banner, banner
+        ARTIFACTS.mkdir(parents=True, exist_ok=True)
+        page.screenshot(path=str(ARTIFACTS / "live-view.png"))
+        # north-up toggle and zoom do not lose the RVs
+        page.click("#hostframe")
+        page.mouse.wheel(0, -300)
+        drawn, listed, _ = _same_tick_counts(page, base + "/api/state")
+        assert drawn == listed
+        # bad input: unknown path, malformed query; a WebSocket that goes away mid-stream
+        assert _get(base + "/nope")[0] == 404
+        assert _get(base + "/api/state?tick=x")[0] == 400
+        other = browser.new_page()
+        other.goto(base + "/")
+        other.wait_for_function("+document.getElementById('map').dataset.rvs > 0")
+        other.close()
+        assert obu.poll() is None
+    finally:
+        page.close()
+        _, err = rve.communicate(timeout=120)
+        assert rve.returncode == 0, err
+    finish(obu)
+    counters = json.loads((tmp_path / "obu.counters.json").read_text())
+    assert counters["ticks"] > 200
+
+
+@pytest.mark.slow
+def test_captures_view_in_chromium(browser, tmp_path):
+    ports = free_ports()
+    obu = start_obu(tmp_path, ports, "--predictor", "ca")
+    out = subprocess.run([PY, "-m", "rve.cli", "run", "--to", f"127.0.0.1:{ports[0]}",
+                          "--host-to", f"127.0.0.1:{ports[1]}", "--no-progress", "--speed",
+                          "8", "--duration", "25", "--per", "30", "--capture", str(tmp_path)],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    finish(obu)
+    web = _port()
+    base = f"http://127.0.0.1:{web}"
+    view = subprocess.Popen([PY, "-m", "captures.cli", "view", str(tmp_path), "--web",
+                             str(web)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    try:
+        _wait_http(base + "/")
+        index = json.loads(_get(base + "/api/ticks")[1])
+        assert index["ticks"] > 100 and index["events"]
+        page = browser.new_page(viewport={"width": 1280, "height": 800})
+        page.goto(base + "/")
+        page.wait_for_selector("#replay:not(.hidden)")
+        # the slider to tick 150: the page draws what /api/state?tick=150 lists
+        page.eval_on_selector("#slider", "s => { s.value = 150; s.dispatchEvent("
+                                         "new Event('input')); }")
+        page.wait_for_function("document.getElementById('tickno').textContent"
+                               ".startsWith('tick 150 ')")
+        s = json.loads(_get(base + "/api/state?tick=150")[1])
+        page.wait_for_function(f"+document.getElementById('map').dataset.t == {s['t']}")
+        assert int(page.get_attribute("#map", "data-rvs")) == len(s["rvs"]) > 0
+        assert s["truth"]  # the RVE's ground truth, joined
+        # a warning in the list jumps to its moment
+        first = index["events"][0]
+        page.click("#warnlist li >> nth=0")
+        page.wait_for_function(
+            f"Math.abs(+document.getElementById('map').dataset.t - {first['t']}) < 0.11")
+        ARTIFACTS.mkdir(parents=True, exist_ok=True)
+        page.screenshot(path=str(ARTIFACTS / "captures-view.png"))
+        page.click("#play")
+        t0 = float(page.get_attribute("#map", "data-t"))
+        page.wait_for_function(f"+document.getElementById('map').dataset.t > {t0}")
+        # bad input
+        assert _get(base + "/api/state?tick=999999")[0] == 400
+        assert _get(base + "/api/state?tick=abc")[0] == 400
+        assert _get(base + "/missing")[0] == 404
+        page.close()
+    finally:
+        view.terminate()
+        view.communicate(timeout=30)
+    bad = subprocess.run([PY, "-m", "captures.cli", "view", str(tmp_path / "nothing")],
+                         capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and bad.stderr.count("\n") == 1, bad.stderr
+    assert shutil.which("chromium") or Path(CHROMIUM).exists()

@@ -24,7 +24,7 @@ $(VENV)/.installed-test: pyproject.toml $(VENV)/.installed
 install: $(VENV)/.installed
 
 demo: $(VENV)/.installed
-	$(BIN)/python -m captures.demo --data $(SHARED)
+	$(BIN)/python -m captures.demo --data $(SHARED) $(DEMO_FLAGS)
 
 # The whole suite; then the SocketCAN tests (pytest -m socketcan) on real vcan: they ran
 # above where this kernel has vcan, else tools/vcanvm.py runs them in a QEMU VM booting

@@ -157,8 +157,8 @@ def hil_run(out: Path, per: float, speed: float, predictor: str, web: bool = Tru
     if web:
         port = _free_tcp_port(8750)
         obu_flags += ["--web", str(port)]
-        print(f"   live view of the OBU while it runs: http://127.0.0.1:{port}/ "
-              f"(afterwards: captures view {out}; --no-web skips it)", flush=True)
+        print(f"   live view of the OBU while it runs: http://127.0.0.1:{port}/ (afterwards: "
+              f"captures view {out}; make demo DEMO_FLAGS=--no-web skips it)", flush=True)
     try:
         warnings = run_daemons(out, ["--per", str(per), "--speed", str(speed), "--seed", "1"],
                                obu_flags)

@@ -44,14 +44,15 @@ test-vcan: $(VENV)/.installed-test debs
 # 1609.2 frames: Wireshark's dissectors, OpenSSL's ECDSA), chromium and fonts-dejavu-core
 # (the live view's tests drive the real page in Debian's headless Chromium through
 # Playwright; no browser download).  Installed when missing and we are root; otherwise the
-# tests say what is missing.
+# tests say what is missing.  The apt-get line below names the same packages.
 DEBS = can-utils iproute2 qemu-system-x86 busybox-static kmod tshark openssl chromium fonts-dejavu-core
 debs:
 	@missing=$$(for p in $(DEBS); do dpkg -s $$p >/dev/null 2>&1 || echo $$p; done); \
 	if [ -z "$$missing" ]; then exit 0; fi; \
 	if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
 	  echo "debs: installing" $$missing; \
-	  apt-get update -q >/dev/null && DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends $(DEBS) >/dev/null; \
+	  apt-get update -q >/dev/null; \
+	  DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends can-utils iproute2 qemu-system-x86 busybox-static kmod tshark openssl chromium fonts-dejavu-core >/dev/null; \
 	else echo "debs: missing" $$missing "(not root, or no apt-get): the tests that need them say so"; fi
 
 bench: $(VENV)/.installed

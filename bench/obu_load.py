@@ -82,7 +82,6 @@ class WebClients:
         self.loop = asyncio.new_event_loop()
         self.thread = threading.Thread(target=self.loop.run_until_complete,
                                        args=(self._main(),), daemon=True)
-        self.stop = None
 
     async def _client(self, session) -> None:
         import aiohttp
@@ -101,7 +100,6 @@ class WebClients:
     async def _main(self) -> None:
         import aiohttp
 
-        self.stop = asyncio.Event()
         async with aiohttp.ClientSession() as session:
             tasks = [asyncio.create_task(self._client(session)) for _ in range(self.k)]
             await asyncio.wait(tasks)

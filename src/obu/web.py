@@ -71,7 +71,6 @@ class Hub:
     def __init__(self) -> None:
         self.latest: str | None = None
         self.clients: set[_Client] = set()
-        self.dropped = 0  # states a browser missed because it was still sending
         #: Someone asked /api/state: states are built from then on even with no browser
         #: (before, the OBU builds none: no cost when nobody looks).
         self.polled = False
@@ -79,8 +78,6 @@ class Hub:
     def publish(self, state: dict) -> None:
         self.latest = json.dumps(state, separators=(",", ":"))
         for c in self.clients:
-            if c.slot is not None:
-                self.dropped += 1
             c.slot = self.latest
             c.ready.set()
 

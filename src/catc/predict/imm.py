@@ -59,7 +59,13 @@ import math
 import numpy as np
 
 from catc.predict.base import Observation, Prediction
-from catc.predict.kalman import JERK_PSD, MIN_HEADING_SPEED, PAPER_R, process_noise
+from catc.predict.kalman import (
+    JERK_PSD,
+    MIN_HEADING_SPEED,
+    PAPER_R,
+    process_noise,
+    stop_point,
+)
 from catc.predict.kinematic import check_observation, elapsed, wrap_heading
 
 #: The BSM period (s): the Markov chain's step.
@@ -272,12 +278,6 @@ class ImmPredictor:
     def _stop(self, xs: np.ndarray, dt: float) -> None:
         """The CA model's stop rule (as the KF's): decelerating along the last heading, it
         stops where that speed reaches 0 instead of reversing (``xs`` row 1 rewritten)."""
-        pe, ve, ae, pn, vn, an = self.x[1].tolist()
-        hd = math.radians(self._heading)
-        se, ce = math.sin(hd), math.cos(hd)
-        u0 = ve * se + vn * ce
-        a_h = ae * se + an * ce
-        if a_h < 0.0 and dt * -a_h >= u0:
-            ts = max(u0, 0.0) / -a_h
-            hs = 0.5 * ts * ts
-            xs[1] = (pe + ts * ve + hs * ae, 0.0, 0.0, pn + ts * vn + hs * an, 0.0, 0.0)
+        stop = stop_point(*self.x[1].tolist(), self._heading, dt)
+        if stop is not None:
+            xs[1] = (stop[0], 0.0, 0.0, stop[1], 0.0, 0.0)

@@ -181,15 +181,9 @@ class KalmanPredictor:
                + h2 * h2 * p22) + self.q * dt**5 / 20.0
         pe, ve, ae = self._east
         pn, vn, an = self._north
-        hd = math.radians(self._heading)
-        se, ce = math.sin(hd), math.cos(hd)
-        u0 = ve * se + vn * ce
-        a_h = ae * se + an * ce
-        if a_h < 0.0 and dt * -a_h >= u0:
-            ts = max(u0, 0.0) / -a_h
-            hs = 0.5 * ts * ts
-            x = pe + ts * ve + hs * ae + self._anchor[0]
-            y = pn + ts * vn + hs * an + self._anchor[1]
+        stop = stop_point(pe, ve, ae, pn, vn, an, self._heading, dt)
+        if stop is not None:
+            x, y = stop[0] + self._anchor[0], stop[1] + self._anchor[1]
             return Prediction(x, y, 0.0, wrap_heading(self._heading), var, var, self.name)
         x = pe + dt * ve + h2 * ae + self._anchor[0]
         y = pn + dt * vn + h2 * an + self._anchor[1]
@@ -198,6 +192,23 @@ class KalmanPredictor:
         heading = (math.degrees(math.atan2(vx, vy)) if speed >= self.min_heading_speed
                    else self._heading)
         return Prediction(x, y, speed, wrap_heading(heading), var, var, self.name)
+
+
+def stop_point(pe: float, ve: float, ae: float, pn: float, vn: float, an: float,
+               heading_deg: float, dt: float) -> tuple[float, float] | None:
+    """The stop rule of a constant-acceleration state (position, velocity, acceleration
+    per ENU axis) propagated ``dt`` s: when its acceleration along the last observed
+    heading decelerates it to a stop within ``dt`` (at once if it is not moving forward),
+    the (x, y) where it stops; None when it does not stop (module docstring)."""
+    hd = math.radians(heading_deg)
+    se, ce = math.sin(hd), math.cos(hd)
+    u0 = ve * se + vn * ce
+    a_h = ae * se + an * ce
+    if not (a_h < 0.0 and dt * -a_h >= u0):
+        return None
+    ts = max(u0, 0.0) / -a_h
+    hs = 0.5 * ts * ts
+    return pe + ts * ve + hs * ae, pn + ts * vn + hs * an
 
 
 def _kf_step(dt: float, q: float, r: tuple[float, float, float], p: tuple, east: tuple,

@@ -437,6 +437,35 @@ def test_a_phantom_from_one_off_copies_is_never_confirmed_and_the_table_is_bound
     assert _accounted(c)
 
 
+def test_one_off_ids_do_not_evict_real_vehicles_from_the_tentative_table() -> None:
+    # 5 new one-off ids every tick and a table of 8: the oldest-first rule evicted the
+    # real vehicles before their 3rd message; the least recently heard goes instead.
+    m = cam(confirm_after=3, confirm_near=3, max_tentative=8)
+    hv = lambda t: north(t, 0.0, 20.0, tid=99)  # noqa: E731
+    rng = random.Random(6)
+    for k in range(5):
+        t = k * 0.1
+        real = [north(t, 100.0 + 30.0 * i, 20.0, x=3.6 * i, tid=1000 + i) for i in range(3)]
+        junk = [north(t, rng.uniform(-200, 200), 20.0, x=-50.0, tid=rng.getrandbits(31) + 2000)
+                for _ in range(5)]
+        snap = m.step(t, hv(t), real + junk)
+    assert sorted(int(i) for i in snap.ids) == [1000, 1001, 1002]
+    assert snap.counters["tentative_evicted"] == 5 * 5 - 8 and m.tentative == 8
+    assert _accounted(snap.counters)
+
+
+def test_a_full_table_of_new_vehicles_is_confirmed() -> None:
+    # 1,000 RVs heard for the first time at once (a bench start): all are confirmed
+    m = cam(confirm_after=3, confirm_near=4)
+    hv = lambda t: north(t, 0.0, 20.0, tid=99)  # noqa: E731
+    ids = random.Random(7).sample(range(1000, 2**31), 1000)
+    for k in range(4):
+        t = k * 0.1
+        snap = m.step(t, hv(t), [north(t, -300.0 + 6.0 * (i // 10), 20.0, x=3.6 * (i % 10),
+                                       tid=tid) for i, tid in enumerate(ids)])
+    assert len(snap) == 1000 and snap.counters["tentative_evicted"] == 0
+
+
 def test_frames_that_contradict_the_senders_trajectory_are_dropped() -> None:
     m = cam()
     hv = lambda t: north(t, 0.0, 20.0, tid=99)  # noqa: E731

@@ -50,7 +50,8 @@ What one step does, in order:
    accepted, each consistent with the one before by the rules above, or
    ``confirm_near`` when it first appeared within ``near_range_m`` of the HV (a sudden
    appearance); ``confirmed`` counts them.  At most ``max_tentative`` tentative tracks
-   are kept (the oldest goes: ``tentative_evicted``), and they do not count against
+   are kept (the one heard from least recently goes: ``tentative_evicted``; a real
+   vehicle, heard every 0.1-0.2 s, outlives one-off ids), and they do not count against
    ``max_tracks``: garbage that happens to decode can neither raise a warning nor fill
    the table.
 4. **HV**: its own predictor (``host_predictor``, CTRV as in SAE J2945/1) and path
@@ -186,8 +187,12 @@ class CamConfig:
     #: appearance: F2MD's and J3287's check): 4 at 10 Hz, 0.3 s.
     confirm_near: int = 4
     near_range_m: float = 50.0
-    #: Tentative tracks kept at once.
-    max_tentative: int = 256
+    #: Tentative tracks kept at once: as many as the table, so that a full table of
+    #: vehicles appearing at once (a bench start, a 1,000-RV scene) can all be confirmed;
+    #: a tentative track is evicted when it is the least recently heard of them, so a
+    #: flood of one-off ids delays no real vehicle that sends 10 times a second unless it
+    #: brings over ``max_tentative`` new ids between two of its messages.
+    max_tentative: int = 1000
     #: An unknown id one bit away from a tracked RV's or the HV's id and within this
     #: distance (m) of it is a bit-flipped copy (``shadow``).
     shadow_range_m: float = 10.0
@@ -443,7 +448,7 @@ class ContextAwareMap:
         self.frame: EnuFrame | None = (EnuFrame(*self.config.origin)
                                        if self.config.origin is not None else None)
         self._tracks: dict[int, _Track] = {}
-        self._tentative: dict[int, None] = {}  # ids of tentative tracks, oldest first
+        self._tentative: dict[int, None] = {}  # ids of tentative tracks, least recently heard first
         self._host_ids: dict[int, float] = {}  # the HV's temporary ids -> last seen
         self._host_recent: deque = deque(maxlen=_RECENT)  # the HV's (t, x, y)
         self._host_predictor = make_predictor(self.config.host_predictor)
@@ -585,10 +590,13 @@ class ContextAwareMap:
         tr.history.add(t, x, y)
         tr.recent.append((t, x, y))
         cnt["accepted"] += 1
-        if tr.need > 1 and tr.accepted >= tr.need:
-            tr.need = 1
+        if tr.need > 1:
             del self._tentative[m.temp_id]
-            cnt["confirmed"] += 1
+            if tr.accepted >= tr.need:
+                tr.need = 1
+                cnt["confirmed"] += 1
+            else:  # heard again: the most recent, evicted last
+                self._tentative[m.temp_id] = None
 
     def _fill_history(self, hist: ConcisePathHistory, m: BSM, t: float,
                       after: float) -> None:

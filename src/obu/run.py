@@ -61,6 +61,7 @@ from catc.predict import NAMES, check
 from catc.replay import split_due
 from hil.capture import JsonLines, versions
 from hil.config import address
+from hil.gcpolicy import GcPolicy
 
 __all__ = ["DEFAULTS", "add_arguments", "run"]
 
@@ -229,7 +230,12 @@ class Obu:
         self.args = args
         config = CamConfig(predictor=args.predictor, max_tracks=args.max_tracks)
         self.cam = ContextAwareMap(config, SafetyApps())
+        if args.predictor == "hgp":  # its compiled kernels, before the first tick
+            from catc.predict.hgp import warm_up
+
+            warm_up()
         self.clock = SecMarkClock()
+        self.gc = None  # the GcPolicy, once serve() has started everything
         self.pending: list = []  # decoded RV BSMs waiting for their tick
         self.pending_rx: dict[int, tuple[float, bytes]] = {}  # id(bsm) -> (rx unix, octets)
         self.counters: Counter[str] = Counter()
@@ -455,6 +461,8 @@ class Obu:
         out["cam_tentative"] = self.cam.tentative
         out.update({f"cam_{k}": v for k, v in self.cam.counters.items()})
         out.update({f"transport_{k}": v for k, v in transport_stats.items()})
+        if self.gc is not None:
+            out.update(self.gc.counters())
         if self.step_ms:
             out["tick_ms_p50"] = round(float(np.percentile(self.step_ms, 50)), 3)
             out["tick_ms_p99"] = round(float(np.percentile(self.step_ms, 99)), 3)
@@ -504,6 +512,7 @@ async def serve(args: argparse.Namespace) -> dict:
         host_, port_ = args.web
         shown = f"[{host_}]" if ":" in host_ else host_
         print(f"obu: live view at http://{shown}:{port_}/", file=sys.stderr, flush=True)
+    obu.gc = GcPolicy()  # start-up done: freeze it, full passes after ticks only
     started = time.monotonic()
     last_status, frames_at_status = started, 0
     collect_s = max(0.0, args.collect_ms) / 1000.0
@@ -535,6 +544,7 @@ async def serve(args: argparse.Namespace) -> dict:
                             or time.monotonic() - obu.last_rv_frame > 0.001:
                         break
                 obu.tick(host)
+                obu.gc.after_tick()
                 break
             now = time.monotonic()
             if now - last_status >= 1.0:

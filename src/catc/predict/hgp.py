@@ -56,14 +56,15 @@ a gap of more than ``reselect_gap_s`` = 0.25 s (two or more BSMs lost in a row).
 on both datasets at PER 0–95 %: PTE95 within 1.5 % of selecting at every BSM, at about a
 quarter of the selections at PER 50 % (docs/hgp.md).
 
-Cost.  An OBU makes one forecast per RV and received BSM; at 31 × 31 most of its cost is
-numpy and LAPACK call overhead, not arithmetic.  The readable formulas (the functions up to
+Cost.  An OBU makes one forecast per RV and received BSM; at 31 × 31 a LAPACK call from
+Python is mostly call overhead, not arithmetic.  The readable formulas (the functions up to
 the "fast path" marker and :meth:`HgpPredictor._make_forecast_reference`) are the reference
-the tests hold the fast path to (1e-9): the window kept as running arrays; bank selection
-with one in-place Cholesky per model of the covariance bordered by the data (zᵀK⁻¹z from
-the factor's last row); posteriors factored and solved in place by LAPACK; cached
-posterior weights for loss-free windows; one cumsum for positions and variances; and
-:func:`forecast_many`, which stacks all of it over the predictors due at a tick.
+the tests hold the fast path to (1e-9 m over 3 s): the window kept as running arrays; the
+exponentials of every window and model by numpy in one pass, and the Cholesky
+factorisations, solves and likelihoods of all of them in compiled kernels that factor many
+systems side by side (:mod:`catc.predict.gpkernels`, numba); cached posterior weights for
+loss-free windows; one cumsum for positions and variances; and :func:`forecast_many`,
+which stacks all of it over the predictors due at a tick.
 """
 
 from __future__ import annotations
@@ -76,9 +77,9 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import blas, cho_solve, lapack, solve_triangular
+from scipy.linalg import cho_solve, solve_triangular
 
-from catc.predict import gp
+from catc.predict import gp, gpkernels
 from catc.predict.bank import KernelBank, default_bank
 from catc.predict.base import Observation, Prediction
 from catc.predict.forecast import (
@@ -371,39 +372,23 @@ def _scratch(name: str, shape: tuple[int, ...]) -> np.ndarray:
     return buf[:size].reshape(shape)
 
 
-def _fill(out: np.ndarray, b: np.ndarray, tp: np.ndarray, p: np.ndarray, n: int,
-          clip: bool) -> None:
-    """Covariances of the points ``b`` (B, R) with B windows under their models ``p``
-    (B, S, 9): ``out[..., j]`` = κ(b, τ_j) for j < n and ``out[..., n]`` = ∂κ(b, s)/∂s at
-    s = 0, the cross-covariance with the slope observation (:func:`_slope_system`).  ``tp``
-    (B, n + 1) is each window's τ (ending at τ_{n−1} = 0) with a 0 appended; ``out`` is a
-    C-contiguous (B, S, R, n + 1).  ``clip``: exponents may fall below −700
-    (:func:`_underflows`)."""
-    bsz, s, r, cols = out.shape
-    flat = out.reshape(bsz, s, r * cols)
-    d = np.subtract(b[:, :, None], tp[:, None, :], out=_scratch("diff", (bsz, r, cols)))
-    np.multiply(d, d, out=d)
-    e = _scratch("exp", flat.shape)
-    np.multiply(d.reshape(bsz, 1, -1), p[:, :, _C, None], out=e)
-    if clip:
-        np.maximum(e, -700.0, out=e)
-    np.exp(e, out=e)
-    bs = b[:, None, :]
-    # Column τ = 0 of e is exp(−b²/(2γ²)): ∂κ(b, s)/∂s|₀ = α1² b/γ² exp(−b²/(2γ²)) + α2² b.
-    kfd = p[:, :, _S1G2, None] * bs * e.reshape(out.shape)[..., n] + p[:, :, _S2, None] * bs
-    np.multiply(e, p[:, :, _S1, None], out=flat)
-    lin = np.multiply(b[:, :, None], tp[:, None, :], out=d)
-    np.multiply(lin.reshape(bsz, 1, -1), p[:, :, _S2, None], out=e)
-    flat += e
-    out[..., n] = kfd
-
-
 def _underflows(span: float, c_min: float) -> bool:
     """Whether exp(c·d²) may underflow for time differences up to ``span`` s and the most
     negative c = −1/(2γ²): numpy's exp is tens of times slower on results below the normal
     range (x < −708), so exponents are clipped at −700 (exp(−700) ≈ 1e−304, as good as 0
     next to the other terms) when this says so."""
     return span * span * -c_min > 690.0
+
+
+_TRIL: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+
+def _tril(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rows and columns of the packed lower triangle of an n × n matrix (cached)."""
+    t = _TRIL.get(n)
+    if t is None:
+        t = _TRIL[n] = np.tril_indices(n)
+    return t
 
 
 def _lml_stack(tau: np.ndarray, z: np.ndarray, p: np.ndarray, m: int,
@@ -413,64 +398,25 @@ def _lml_stack(tau: np.ndarray, z: np.ndarray, p: np.ndarray, m: int,
     constants of ``thetas`` (m speed models scored on z[:, 0], then m heading models on
     z[:, 1]).  Returns (B, S).
 
-    One Cholesky per window and model of the covariance bordered by z: for [[K, z], [zᵀ, c]]
-    the last row of the factor is (L⁻¹z)ᵀ whatever c is, so zᵀK⁻¹z = ‖L⁻¹z‖² needs no
-    triangular solve; c only has to keep the border positive definite, c > zᵀK⁻¹z, which
-    K ⪰ min(σn², σd²)·I guarantees with a margin.  The covariances are built as
-    exp(c·d² + log α1²) (one matrix product for all models) plus the linear term α2²·t t′
-    (one BLAS rank-1 update): broadcasting per-model constants costs three times more.
-    """
+    numpy computes the exponentials of every window and model, the packed lower triangle
+    of the value covariance, as exp(c·d² + log α1²) with one matrix product for all models
+    (broadcasting per-model constants costs three times more);
+    :func:`catc.predict.gpkernels.select_lml` assembles, factors and scores them, the
+    models of a window interleaved."""
+    del thetas  # the constants carry everything
     bsz, n = tau.shape
-    k = n + 1
-    s = len(p)
-    a = _scratch("lml", (bsz, s, k + 1, k + 1))
-    flat = a.reshape(bsz, s, -1)
-    pts = np.zeros((bsz, k + 1))  # τ, the slope point, the border (replaced below)
-    pts[:, :n] = tau
-    outer = np.multiply(pts[:, :, None], pts[:, None, :])
-    lhs = _scratch("lhs", (bsz, 2, (k + 1) * (k + 1)))
-    d = np.subtract(pts[:, :, None], pts[:, None, :], out=lhs[:, 0].reshape(bsz, k + 1, k + 1))
-    np.multiply(d, d, out=d)
-    lhs[:, 1] = 1.0
-    np.matmul(p[:, _C:_LOG_S1 + 1], lhs, out=flat)  # c·d² + log α1²
+    rows, cols = _tril(n)
+    lhs = np.empty((bsz, len(rows), 2))
+    d2 = np.subtract(tau[:, rows], tau[:, cols], out=lhs[:, :, 0])
+    np.multiply(d2, d2, out=d2)
+    lhs[:, :, 1] = 1.0
+    e = np.matmul(lhs, p[:, _C:_LOG_S1 + 1].T, out=_scratch("lml", (bsz, len(rows), len(p))))
     if _underflows(-float(tau[:, 0].min()), float(p[:, _C].min())):
-        np.maximum(flat, -700.0, out=flat)
-    np.exp(flat, out=flat)  # α1² exp(−d²/(2γ²))
-    # Column τ = 0: ∂κ(t, s)/∂s|₀ = α1² t/γ² exp(−t²/(2γ²)) + α2² t (before the linear term).
-    kfd = pts[:, None, :] * (a[..., n] * (-2.0 * p[:, _C, None]) + p[:, _S2, None])
-    for b in range(bsz):
-        blas.dger(1.0, outer[b].ravel(), p[:, _S2], a=flat[b].T, overwrite_a=1)
-    a[..., n] = kfd
-    a[:, :, n, :n] = a[:, :, :n, n]
-    a[:, :, n, n] = p[:, _KDD]
-    flat[:, :, 0:n * (k + 2):k + 2] += p[:, _NOISE, None]
-    per_series = a.reshape(bsz, 2, m, k + 1, k + 1)
-    per_series[:, :, :, :k, k] = z[:, :, None]
-    per_series[:, :, :, k, :k] = z[:, :, None]
-    per_series[:, :, :, k, k] = (4.0 * np.einsum("bsi,bsi->bs", z, z))[:, :, None] \
-        / p[:, _FLOOR].reshape(2, m) + 1.0
-    cells = a.reshape(bsz * s, k + 1, k + 1)
-    failed: dict[int, float] = {}
-    for r in range(bsz * s):
-        # The matrix is symmetric, so its transpose is the same matrix in Fortran order:
-        # factor it in place.  The factor lands in the upper triangle: [j, i] = L[i, j].
-        _, info = lapack.dpotrf(cells[r].T, lower=1, clean=0, overwrite_a=1)
-        if info == 0:
-            continue
-        if info <= k:  # K itself is not positive definite: the model cannot explain z
-            failed[r] = -np.inf
-        else:  # excluded by the choice of c; score it the long way if it happens anyway
-            b, j = divmod(r, s)
-            zr = z[b, j // m]
-            failed[r] = lml_with_slope(tau[b], zr[:n], zr[n], p[j, _SLOPE], thetas[j][None],
-                                       p[j, _NOISE])[0]
-        cells[r] = np.eye(k + 1)  # neutral below; the value is replaced after
-    w = a[..., :k, k]
-    logdet = np.log(np.diagonal(a, axis1=2, axis2=3)[..., :k]).sum(axis=-1)
-    lml = -0.5 * np.einsum("bsi,bsi->bs", w, w) - logdet - 0.5 * k * _LOG_2PI
-    for r, value in failed.items():
-        lml.flat[r] = value
-    return lml
+        np.maximum(e, -700.0, out=e)
+    np.exp(e, out=e)
+    out = np.empty((bsz, len(p)))
+    gpkernels.select_lml(e, np.ascontiguousarray(tau), np.ascontiguousarray(z), p, m, out)
+    return out
 
 
 def _posterior_stack(rel: np.ndarray, grid: np.ndarray,
@@ -481,35 +427,26 @@ def _posterior_stack(rel: np.ndarray, grid: np.ndarray,
     and slope, the heading values and slope; ``p`` (B, 2, 9) each window's speed and heading
     model constants.  Returns the means and latent variances (not clipped), (B, 2, len(grid)).
 
-    Per (window, series) one C-ordered array [K; zᵀ; K*ᵀ] whose blocks read in Fortran order
-    are K and [z | K*]: LAPACK factors K = LLᵀ and solves L⁻¹[z | K*] in place, and the mean
-    is (L⁻¹K*)ᵀ(L⁻¹z), the variance κ** − ‖L⁻¹K*‖².
-    """
+    numpy computes the exponentials of each window's value covariance under its two models
+    (one batched matrix product), :func:`catc.predict.gpkernels.posterior` the rest, the
+    2B systems interleaved in blocks."""
     bsz, _, k = rel.shape
     n = k - 1
-    tp = rel[:, 0]
-    rows = np.empty((bsz, k + 1 + len(grid)))  # τ, the slope point, the z row, the grid
-    rows[:, :k] = tp
-    rows[:, k] = 0.0
-    rows[:, k + 1:] = grid
-    a = _scratch("cov", (bsz, 2, rows.shape[1], k))
-    _fill(a, rows, tp, p, n, _underflows(grid[-1] - float(tp[:, 0].min()),
-                                         float(p[:, :, _C].min())))
-    a[:, :, n, :n] = a[:, :, :n, n]
-    a[:, :, n, n] = p[:, :, _KDD]
-    a[:, :, k, :] = rel[:, 1:]
-    a.reshape(bsz, 2, -1)[:, :, 0:n * (k + 1):k + 1] += p[:, :, _NOISE, None]
-    flat = a.reshape(2 * bsz, -1, k)
-    for r in range(2 * bsz):
-        kt = flat[r, :k].T  # K is symmetric: this block read in Fortran order is K
-        _, info = lapack.dpotrf(kt, lower=1, clean=0, overwrite_a=1)
-        if info != 0:
-            raise np.linalg.LinAlgError(f"slope covariance not positive definite ({info})")
-        lapack.dtrtrs(kt, flat[r, k:].T, lower=1, overwrite_b=1)
-    w, v = a[:, :, k, :, None], a[:, :, k + 1:]
-    mean = np.matmul(v, w)[..., 0]
-    var = p[:, :, _S1, None] + p[:, :, _S2, None] * (grid * grid)
-    var -= np.einsum("bsgi,bsgi->bsg", v, v)
+    tau = rel[:, 0, :n]
+    rows, cols = _tril(n)
+    lhs = np.empty((bsz, len(rows), 2))
+    d2 = np.subtract(tau[:, rows], tau[:, cols], out=lhs[:, :, 0])
+    np.multiply(d2, d2, out=d2)
+    lhs[:, :, 1] = 1.0
+    p = np.ascontiguousarray(p)
+    e = np.matmul(lhs, p[:, :, _C:_LOG_S1 + 1].transpose(0, 2, 1),
+                  out=_scratch("cov", (bsz, len(rows), 2)))
+    if _underflows(-float(tau[:, 0].min()), float(p[:, :, _C].min())):
+        np.maximum(e, -700.0, out=e)
+    np.exp(e, out=e)
+    mean = np.empty((bsz, 2, len(grid)))
+    var = np.empty((bsz, 2, len(grid)))
+    gpkernels.posterior(e, np.ascontiguousarray(rel), grid, p, mean, var)
     return mean, var
 
 
@@ -1043,9 +980,10 @@ class HgpPredictor(_WindowPredictor):
         return int(idx[0]) if len(idx) else None
 
 
-#: Windows per stacked call: bounds the work arrays (a selection's is 280 kB per window).
-_SELECT_CHUNK = 8
-_POSTERIOR_CHUNK = 16
+#: Windows per stacked call: bounds the work arrays (a selection's exponentials are
+#: 120 kB per window, a posterior's 23 kB).
+_SELECT_CHUNK = 16
+_POSTERIOR_CHUNK = 64
 
 
 def _select_batch(preds: list[HgpPredictor], rels: list[np.ndarray],
@@ -1179,6 +1117,17 @@ def forecast_many_at(items: Iterable[tuple[object, float]]) -> int:
         for p, f in zip(preds, _forecast_batch(preds, [n for _, n in group]), strict=True):
             p._forecast = f
     return sum(len(group) for group in groups.values())
+
+
+def warm_up() -> None:
+    """Load (or, on a machine's first run, compile) the compiled kernels now, with one
+    forecast of a window with losses: a daemon calls this before its first tick, which
+    would otherwise take ~0.2 s longer (several seconds on a cold compile cache)."""
+    p = HgpPredictor()
+    for k in range(12):
+        if k % 3:
+            p.update(Observation(0.1 * k, 0.0, 2.0 * k, 20.0, 0.0, 0.0, 0.0))
+    p.predict(2.0)
 
 
 @dataclass(frozen=True)

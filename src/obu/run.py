@@ -556,6 +556,7 @@ async def serve(args: argparse.Namespace) -> dict:
                 if obu.cap is not None:
                     obu.cap.write_counters(obu.all_counters(rx.stats))
     finally:
+        obu.gc.restore()  # serve() may run inside another program (the tests)
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.remove_signal_handler(sig)
         pumping.cancel()

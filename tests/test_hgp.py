@@ -509,9 +509,9 @@ def test_branches_answer_where_their_recent_gaps_were_better():
     got, want = p.predict(last.t + 0.2), ref.predict(last.t + 0.2)
     assert (got.x, got.y, got.source) == (want.x, want.y, want.source)
     assert p.predict(last.t + 5.0).source in ("gp", "cs", "ca")
-    assert p._score[0, 0] > 2.0 * p._score[0, 1]  # squared errors (GP 0.4 mm, CA 0.15 mm)
+    assert p._score[0][0] > 2.0 * p._score[0][1]  # squared errors (GP 0.4 mm, CA 0.15 mm)
     p.reset()
-    assert p.branch(0.2) == 0 and not p._scored.any()
+    assert p.branch(0.2) == 0 and not any(p._scored)
 
 
 def test_before_any_scored_gap_the_gp_answers():

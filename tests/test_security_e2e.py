@@ -56,8 +56,11 @@ def _counters(err: str) -> dict:
 def test_signed_run_verifies_every_frame_and_scores_like_the_unsigned_run(pki, tmp_path):
     signed, plain = tmp_path / "signed", tmp_path / "plain"
     ports = free_ports()
+    # --collect-ms 30: on a loaded machine the signing RVE's last frames of a tick can
+    # trail its host frame by more than the default 5 ms; both runs must step the same
+    # frames at the same ticks for their scores to be equal
     obu = start_obu(signed, ports, "--predictor", "ca", "--verify", "enforce",
-                    "--trust", str(pki))
+                    "--trust", str(pki), "--collect-ms", "30")
     summary = rve(ports, *RUN, "--sign", str(pki), "--capture", str(signed))
     _, err = finish(obu)
     c = _counters(err)
@@ -65,12 +68,12 @@ def test_signed_run_verifies_every_frame_and_scores_like_the_unsigned_run(pki, t
     assert 0 < summary["with_certificate"] < summary["signed"]
     assert not {k for k in c if k.startswith("verify_") and k != "verify_ok"}
     ports = free_ports()
-    obu = start_obu(plain, ports, "--predictor", "ca")
+    obu = start_obu(plain, ports, "--predictor", "ca", "--collect-ms", "30")
     rve(ports, *RUN, "--capture", str(plain))
     finish(obu)
     a, b = score(signed), score(plain)
-    assert a["security"] == {"ok": a["received"]} and a["rejected"] == 0
-    assert a["received"] == a["sent"] == b["received"]
+    assert a["security"] == {"ok": a["received"] + a["unticked"]} and a["rejected"] == 0
+    assert a["received"] == a["sent"] == b["received"] and a["unticked"] == b["unticked"] == 0
     for key in ("pte95_m", "pte95_per_rv", "fcw_accuracy", "fcw", "warnings"):
         assert a[key] == b[key], key
 
@@ -137,9 +140,10 @@ def test_frames_that_do_not_verify_are_counted_by_reason(pki, tmp_path, mode):
         assert [r["status"] for r in rx] == ["rejected"] * total
         assert sorted(r["verdict"] for r in rx) == sorted(
             reason for reason, frames in attacks.items() for _ in frames)
-    else:  # tracked, with the verdict recorded
-        assert all(r["status"] == "ok" for r in rx) and len(rx) <= total
-        assert {r["verdict"] for r in rx} <= set(attacks)
+    else:  # tracked (or, if not due by the one host frame, recorded at exit): verdicts kept
+        assert {r["status"] for r in rx} <= {"ok", "unticked"} and len(rx) == total
+        assert sorted(r["verdict"] for r in rx) == sorted(
+            reason for reason, frames in attacks.items() for _ in frames)
 
 
 # --- OpenSSL verifies the RVE's wire signatures ------------------------------------------

@@ -197,7 +197,7 @@ def score(directory: Path) -> dict:
     ok = list({(r["id"], r["msgCnt"], r["sec_mark"]): r for r in ok_all
                if r.get("id") in names}.values())
     bad = Counter(r["status"] for r in rx
-                  if r.get("status") not in ("ok", "rejected", "quarantined"))
+                  if r.get("status") not in ("ok", "rejected", "quarantined", "unticked"))
     # IEEE 1609.2 verdicts (obu run --verify): "ok" or the reason, whether the frame was
     # dropped (enforce: status "rejected") or tracked anyway (log)
     security = Counter(r["verdict"] for r in rx if r.get("verdict"))
@@ -218,6 +218,8 @@ def score(directory: Path) -> dict:
         "decode_errors": dict(bad),
         "security": dict(security),
         "rejected": sum(1 for r in rx if r.get("status") == "rejected"),
+        # received after the run's last host frame: never stepped
+        "unticked": sum(1 for r in rx if r.get("status") == "unticked"),
         "latency_ms": {"p50": round(float(np.percentile(lat_ms, 50)), 3),
                        "p99": round(float(np.percentile(lat_ms, 99)), 3),
                        "max": round(float(lat_ms.max()), 3)} if len(lat_ms) else None,

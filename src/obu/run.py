@@ -27,7 +27,8 @@ Outputs:
   p99, deadline misses, warnings;
 * the capture directory (append-only, flushed at every tick): ``obu.config.json``
   (settings, versions, ENU origin), ``obu.rx.jsonl`` (every frame with its receive time,
-  channel, octets and what became of it), ``obu.ticks.jsonl`` (one line per tick: time,
+  channel, octets and what became of it; ``unticked``: received after the last host
+  frame, so never stepped), ``obu.ticks.jsonl`` (one line per tick: time,
   HV state, step time, warnings), ``obu.tracks.jsonl`` (every tracked RV at every tick:
   estimate, source, age, zones now and predicted, lane), ``obu.events.jsonl`` (warning
   starts and ends), ``obu.counters.json`` (rewritten every second and at the end).
@@ -471,6 +472,17 @@ class Obu:
 
     def close(self) -> None:
         if self.cap is not None:
+            # received, never stepped (no host frame came after them): recorded all the
+            # same, so that the capture has every frame the OBU received
+            for m in self.pending:
+                rx_unix, data, verdict = self.pending_rx.pop(id(m), (None, b"", None))
+                record = {"rx_unix": rx_unix, "channel": "rv", "id": f"{m.temp_id:08X}",
+                          "msgCnt": m.msg_cnt, "sec_mark": m.sec_mark, "status": "unticked",
+                          "octets": len(data), "hex": data.hex()}
+                if verdict is not None:
+                    record["verdict"] = verdict
+                self.cap.rx.write(record)
+            self.pending = []
             self.cap.close()
         if self.warn_out is not sys.stdout:
             self.warn_out.close()

@@ -69,6 +69,7 @@ which stacks all of it over the predictors due at a tick.
 
 from __future__ import annotations
 
+import bisect
 import math
 import threading
 import weakref
@@ -634,6 +635,8 @@ class HgpPredictor(_WindowPredictor):
         c = config or HgpConfig()
         if int(c.reselect_every) != c.reselect_every or c.reselect_every < 1:
             raise ValueError(f"reselect_every must be an integer >= 1, got {c.reselect_every!r}")
+        if list(c.branch_edges) != sorted(c.branch_edges):
+            raise ValueError(f"branch_edges must be ascending, got {c.branch_edges!r}")
         try:  # one instance per distinct configuration, for forecast_many's grouping
             self.config = _CONFIGS.setdefault(c, c)
         except TypeError:  # a field given as a list: unhashable, grouped alone
@@ -653,13 +656,14 @@ class HgpPredictor(_WindowPredictor):
         else:
             self._kin = []
         # per gap class: GP, then each kinematic branch
-        self._score = np.zeros((len(c.branch_edges) + 1, len(self._kin) + 1))
-        self._scored = np.zeros(len(c.branch_edges) + 1, dtype=int)
+        self._score = [[0.0] * (len(self._kin) + 1) for _ in range(len(c.branch_edges) + 1)]
+        self._scored = [0] * (len(c.branch_edges) + 1)
         # per gap class, the branch that answers (kept up to date by _score_branches)
         self._choice = [0] * (len(c.branch_edges) + 1)
         # The window as running arrays: one column per received sample (rows t, speed,
         # unwrapped heading in rad, x, y), columns _lo.._hi of a buffer twice as long.
         self._buf = np.empty((5, 2 * c.tw + 2))
+        self._uncapped = math.isinf(c.window_s)  # the window is all of _obs
         self._reset_window()
 
     def _reset_window(self) -> None:
@@ -674,8 +678,8 @@ class HgpPredictor(_WindowPredictor):
         self._reset_window()
         for k in self._kin:
             k.reset()
-        self._score[:] = 0.0
-        self._scored[:] = 0
+        self._score = [[0.0] * len(row) for row in self._score]
+        self._scored = [0] * len(self._scored)
         self._choice = [0] * len(self._choice)
 
     def update(self, obs: Observation) -> None:
@@ -687,7 +691,8 @@ class HgpPredictor(_WindowPredictor):
                 self._score_branches(obs, obs.t - prev.t)
             for k in self._kin:
                 k.update(obs)
-        super().update(obs)
+        self._obs.append(obs)  # _WindowPredictor.update, its time check done above
+        self._forecast = None
         c = self.config
         h = math.radians(obs.heading)
         if prev is None:
@@ -717,22 +722,21 @@ class HgpPredictor(_WindowPredictor):
         last, tau = self._since_last(t)
         if tau == 0.0:
             return bsm_prediction(last)
-        if self._window_len() < self.config.min_points:
+        c = self.config
+        if (len(self._obs) if self._uncapped else self._window_len()) < c.min_points:
             return self._ca(last, tau)
         f = self._forecast
-        if f is None or not covers(f, tau, self.config.horizon_s):
+        if f is None or not covers(f, tau, c.horizon_s):
             f = self._forecast = self._make_forecast(max(tau, 3.0))
-        branch = self.branch(tau) if self._kin else 0
-        if branch:  # the GP's forecast is still made: it is scored at the next BSM
-            return self._kin[branch - 1].predict(t)
+        if self._kin:
+            branch = self._choice[bisect.bisect_left(c.branch_edges, tau)]
+            if branch:  # the GP's forecast is still made: it is scored at the next BSM
+                return self._kin[branch - 1].predict(t)
         return read(f, tau)
 
     def _gap_class(self, tau: float) -> int:
-        edges = self.config.branch_edges
-        i = 0
-        while i < len(edges) and tau > edges[i]:
-            i += 1
-        return i
+        """The gap class of ``tau``: the number of ``branch_edges`` below it."""
+        return bisect.bisect_left(self.config.branch_edges, tau)
 
     def branch(self, tau: float) -> int:
         """Which branch answers ``tau`` s after the last BSM: 0 the GP, k the k-th of
@@ -748,15 +752,15 @@ class HgpPredictor(_WindowPredictor):
         if f is None or not covers(f, gap, self.config.horizon_s):
             return
         g = read(f, gap)
-        errs = [(g.x - obs.x) ** 2 + (g.y - obs.y) ** 2]
+        x, y = obs.x, obs.y
+        errs = [(g.x - x) ** 2 + (g.y - y) ** 2]
         for k in self._kin:
             p = k.predict(obs.t)
-            errs.append((p.x - obs.x) ** 2 + (p.y - obs.y) ** 2)
+            errs.append((p.x - x) ** 2 + (p.y - y) ** 2)
         c = self.config
         d = c.branch_decay
-        g = self._gap_class(gap)
-        row = [d * old + (1.0 - d) * e for old, e in zip(self._score[g].tolist(), errs,
-                                                          strict=True)]
+        g = bisect.bisect_left(c.branch_edges, gap)
+        row = [d * old + (1.0 - d) * e for old, e in zip(self._score[g], errs, strict=True)]
         self._score[g] = row
         self._scored[g] += 1
         k = min(range(1, len(row)), key=row.__getitem__)

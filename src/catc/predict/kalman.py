@@ -239,36 +239,53 @@ def _kf_step(dt: float, q: float, r: tuple[float, float, float], p: tuple, east:
     inv_det = 1.0 / (s00 * c00 + m01 * c01 + m02 * c02)
     i00, i01, i02 = c00 * inv_det, c01 * inv_det, c02 * inv_det
     i11, i12, i22 = c11 * inv_det, c12 * inv_det, c22 * inv_det
-    # gain K = P⁻ S⁻¹ (rows k0, k1, k2)
-    k0 = (m00 * i00 + m01 * i01 + m02 * i02, m00 * i01 + m01 * i11 + m02 * i12,
-          m00 * i02 + m01 * i12 + m02 * i22)
-    k1 = (m01 * i00 + m11 * i01 + m12 * i02, m01 * i01 + m11 * i11 + m12 * i12,
-          m01 * i02 + m11 * i12 + m12 * i22)
-    k2 = (m02 * i00 + m12 * i01 + m22 * i02, m02 * i01 + m12 * i11 + m22 * i12,
-          m02 * i02 + m12 * i12 + m22 * i22)
-
-    def axis(x: tuple, z: tuple) -> tuple[float, float, float]:
+    # gain K = P⁻ S⁻¹ (element kij: row i, column j)
+    k00 = m00 * i00 + m01 * i01 + m02 * i02
+    k01 = m00 * i01 + m01 * i11 + m02 * i12
+    k02 = m00 * i02 + m01 * i12 + m02 * i22
+    k10 = m01 * i00 + m11 * i01 + m12 * i02
+    k11 = m01 * i01 + m11 * i11 + m12 * i12
+    k12 = m01 * i02 + m11 * i12 + m12 * i22
+    k20 = m02 * i00 + m12 * i01 + m22 * i02
+    k21 = m02 * i01 + m12 * i11 + m22 * i12
+    k22 = m02 * i02 + m12 * i12 + m22 * i22
+    # state: x⁻ = A x, then x⁻ + K (z − x⁻), per axis
+    out = []
+    for x, z in ((east, ze), (north, zn)):
         x0 = x[0] + dt * x[1] + h2 * x[2]
         x1 = x[1] + dt * x[2]
         x2 = x[2]
         e0, e1, e2 = z[0] - x0, z[1] - x1, z[2] - x2
-        return (x0 + k0[0] * e0 + k0[1] * e1 + k0[2] * e2,
-                x1 + k1[0] * e0 + k1[1] * e1 + k1[2] * e2,
-                x2 + k2[0] * e0 + k2[1] * e1 + k2[2] * e2)
-
-    # Joseph form: (I − K) P⁻ (I − K)ᵀ + K R Kᵀ, with B = (I − K) P⁻ (rows b0, b1, b2)
-    m = ((m00, m01, m02), (m01, m11, m12), (m02, m12, m22))
-    k = (k0, k1, k2)
-    b = [[m[i][j] - k[i][0] * m[0][j] - k[i][1] * m[1][j] - k[i][2] * m[2][j]
-          for j in range(3)] for i in range(3)]
-
-    def joseph(i: int, j: int) -> float:
-        ki, kj = k[i], k[j]
-        v = (b[i][j] - b[i][0] * kj[0] - b[i][1] * kj[1] - b[i][2] * kj[2]
-             + ki[0] * r0 * kj[0] + ki[1] * r1 * kj[1] + ki[2] * r2 * kj[2])
-        w = (b[j][i] - b[j][0] * ki[0] - b[j][1] * ki[1] - b[j][2] * ki[2]
-             + kj[0] * r0 * ki[0] + kj[1] * r1 * ki[1] + kj[2] * r2 * ki[2])
-        return 0.5 * (v + w)
-
-    cov = (joseph(0, 0), joseph(0, 1), joseph(0, 2), joseph(1, 1), joseph(1, 2), joseph(2, 2))
-    return axis(east, ze), axis(north, zn), cov
+        out.append((x0 + k00 * e0 + k01 * e1 + k02 * e2,
+                    x1 + k10 * e0 + k11 * e1 + k12 * e2,
+                    x2 + k20 * e0 + k21 * e1 + k22 * e2))
+    # Joseph form: (I − K) P⁻ (I − K)ᵀ + K R Kᵀ with B = (I − K) P⁻, symmetrised: entry
+    # (i, j) is the mean of the (i, j) and (j, i) expressions (equal on the diagonal)
+    b00 = m00 - k00 * m00 - k01 * m01 - k02 * m02
+    b01 = m01 - k00 * m01 - k01 * m11 - k02 * m12
+    b02 = m02 - k00 * m02 - k01 * m12 - k02 * m22
+    b10 = m01 - k10 * m00 - k11 * m01 - k12 * m02
+    b11 = m11 - k10 * m01 - k11 * m11 - k12 * m12
+    b12 = m12 - k10 * m02 - k11 * m12 - k12 * m22
+    b20 = m02 - k20 * m00 - k21 * m01 - k22 * m02
+    b21 = m12 - k20 * m01 - k21 * m11 - k22 * m12
+    b22 = m22 - k20 * m02 - k21 * m12 - k22 * m22
+    c00 = (b00 - b00 * k00 - b01 * k01 - b02 * k02
+           + k00 * r0 * k00 + k01 * r1 * k01 + k02 * r2 * k02)
+    c01 = 0.5 * ((b01 - b00 * k10 - b01 * k11 - b02 * k12
+                  + k00 * r0 * k10 + k01 * r1 * k11 + k02 * r2 * k12)
+                 + (b10 - b10 * k00 - b11 * k01 - b12 * k02
+                    + k10 * r0 * k00 + k11 * r1 * k01 + k12 * r2 * k02))
+    c02 = 0.5 * ((b02 - b00 * k20 - b01 * k21 - b02 * k22
+                  + k00 * r0 * k20 + k01 * r1 * k21 + k02 * r2 * k22)
+                 + (b20 - b20 * k00 - b21 * k01 - b22 * k02
+                    + k20 * r0 * k00 + k21 * r1 * k01 + k22 * r2 * k02))
+    c11 = (b11 - b10 * k10 - b11 * k11 - b12 * k12
+           + k10 * r0 * k10 + k11 * r1 * k11 + k12 * r2 * k12)
+    c12 = 0.5 * ((b12 - b10 * k20 - b11 * k21 - b12 * k22
+                  + k10 * r0 * k20 + k11 * r1 * k21 + k12 * r2 * k22)
+                 + (b21 - b20 * k10 - b21 * k11 - b22 * k12
+                    + k20 * r0 * k10 + k21 * r1 * k11 + k22 * r2 * k12))
+    c22 = (b22 - b20 * k20 - b21 * k21 - b22 * k22
+           + k20 * r0 * k20 + k21 * r1 * k21 + k22 * r2 * k22)
+    return out[0], out[1], (c00, c01, c02, c11, c12, c22)

@@ -521,3 +521,23 @@ def test_before_any_scored_gap_the_gp_answers():
         a.update(o)
         b.update(o)
     assert a.predict(obs[57].t + 0.7) == b.predict(obs[57].t + 0.7)
+
+
+def test_kernel_bench_agrees_with_lapack():
+    """bench/gp_kernels.py runs, and its compiled rows give LAPACK's likelihoods and
+    posterior means (to the round-off of 31 × 31 systems of condition up to ~1e7)."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    bench = Path(__file__).resolve().parent.parent / "bench" / "gp_kernels.py"
+    out = subprocess.run([sys.executable, str(bench), "--json", "--windows", "3",
+                          "--forecasts", "3", "--repeat", "1"], capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 0, out.stderr
+    res = json.loads(out.stdout)
+    assert res["selections"]["kernel"]["max_diff"] < 1e-6
+    assert res["posteriors"]["kernel"]["max_diff"] < 1e-8
+    assert all(r["ms"] > 0 for key in ("selections", "posteriors")
+               for r in res[key].values() if isinstance(r, dict))

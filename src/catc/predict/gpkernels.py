@@ -102,19 +102,20 @@ def _assemble(a, e, col, tau, tt_w, n, nb, s2, m2c, noise, kdd):  # pragma: no c
 
 
 @njit(**_OPTS)
-def select_lml(e, tau, z, p, m, out):  # pragma: no cover - compiled
+def select_lml(e, tau, z, p, m, out, a):  # pragma: no cover - compiled
     """Log marginal likelihood of each window under each model, values and slope together
     (catc.predict.hgp.lml_with_slope).
 
     ``e`` (B, P, S): packed α1²·exp(c·d²) of window b under model s (P = n(n+1)/2);
     ``tau`` (B, n) each ending at 0; ``z`` (B, 2, n + 1) speed and heading values with their
     slope; ``p`` (S, 9) model constants, the first ``m`` speed models (scored on z[:, 0]),
-    then heading ones (on z[:, 1]); ``out`` (B, S).  A model whose covariance is not
-    positive definite scores −inf."""
+    then heading ones (on z[:, 1]); ``out`` (B, S); ``a`` a work array of at least
+    (n + 1)² · S (a fresh one per call costs page faults: 250 kB).  A model whose
+    covariance is not positive definite scores −inf."""
     bsz, _, ns = e.shape
     n = tau.shape[1]
     k = n + 1
-    a = np.empty((k, k, ns))
+    a = a[:k * k * ns].reshape((k, k, ns))
     w = np.empty((k, ns))
     zz = np.empty((k, ns))
     tt_w = np.empty(ns)
@@ -144,14 +145,15 @@ def select_lml(e, tau, z, p, m, out):  # pragma: no cover - compiled
 
 
 @njit(**_OPTS)
-def posterior(e, rel, grid, p, mean, var):  # pragma: no cover - compiled
+def posterior(e, rel, grid, p, mean, var, a):  # pragma: no cover - compiled
     """Posterior mean and latent variance at ``grid`` (0, Δ, 2Δ, …) of R = 2B systems, each
     conditioned on its values and slope (catc.predict.hgp.posterior_with_slope); system
     r = 2b + c is series c (0 speed, 1 heading) of window b.
 
     ``e`` (B, P, 2): packed α1²·exp(c·d²) of each window under its two models; ``rel``
     (B, 3, n + 1): τ then 0, speed values and slope, heading values and slope; ``p``
-    (B, 2, 9) the model constants; ``mean``, ``var`` (B, 2, G).
+    (B, 2, 9) the model constants; ``mean``, ``var`` (B, 2, G); ``a`` a work array of at
+    least (n + 1)² · BLOCK.
 
     The covariances with the grid, α1²·exp(c·(g − τ_i)²), are not exponentials of their
     own: from g = 0, where it is the window's entry (n−1, i) (τ_{n−1} = 0), each grid step
@@ -165,7 +167,7 @@ def posterior(e, rel, grid, p, mean, var):  # pragma: no cover - compiled
     dt = grid[1] - grid[0] if g_count > 1 else 0.0
     n = rel.shape[2] - 1
     k = n + 1
-    a = np.empty((k, k, BLOCK))
+    a = a[:k * k * BLOCK].reshape((k, k, BLOCK))
     zz = np.empty((k, BLOCK))
     w = np.empty((k, BLOCK))
     ks = np.empty((k, BLOCK))

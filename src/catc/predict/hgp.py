@@ -407,8 +407,10 @@ def _lml_stack(tau: np.ndarray, z: np.ndarray, p: np.ndarray, m: int,
     del thetas  # the constants carry everything
     bsz, n = tau.shape
     rows, cols = _tril(n)
-    lhs = np.empty((bsz, len(rows), 2))
-    d2 = np.subtract(tau[:, rows], tau[:, cols], out=lhs[:, :, 0])
+    lhs = _scratch("lhs", (bsz, len(rows), 2))
+    d2 = np.subtract(np.take(tau, rows, axis=1, out=_scratch("rows", (bsz, len(rows)))),
+                     np.take(tau, cols, axis=1, out=_scratch("cols", (bsz, len(rows)))),
+                     out=lhs[:, :, 0])
     np.multiply(d2, d2, out=d2)
     lhs[:, :, 1] = 1.0
     e = np.matmul(lhs, p[:, _C:_LOG_S1 + 1].T, out=_scratch("lml", (bsz, len(rows), len(p))))
@@ -416,7 +418,8 @@ def _lml_stack(tau: np.ndarray, z: np.ndarray, p: np.ndarray, m: int,
         np.maximum(e, -700.0, out=e)
     np.exp(e, out=e)
     out = np.empty((bsz, len(p)))
-    gpkernels.select_lml(e, np.ascontiguousarray(tau), np.ascontiguousarray(z), p, m, out)
+    gpkernels.select_lml(e, np.ascontiguousarray(tau), np.ascontiguousarray(z), p, m, out,
+                         _scratch("factor", ((n + 1) * (n + 1) * len(p),)))
     return out
 
 
@@ -435,8 +438,10 @@ def _posterior_stack(rel: np.ndarray, grid: np.ndarray,
     n = k - 1
     tau = rel[:, 0, :n]
     rows, cols = _tril(n)
-    lhs = np.empty((bsz, len(rows), 2))
-    d2 = np.subtract(tau[:, rows], tau[:, cols], out=lhs[:, :, 0])
+    lhs = _scratch("lhs", (bsz, len(rows), 2))
+    d2 = np.subtract(np.take(tau, rows, axis=1, out=_scratch("rows", (bsz, len(rows)))),
+                     np.take(tau, cols, axis=1, out=_scratch("cols", (bsz, len(rows)))),
+                     out=lhs[:, :, 0])
     np.multiply(d2, d2, out=d2)
     lhs[:, :, 1] = 1.0
     p = np.ascontiguousarray(p)
@@ -447,7 +452,8 @@ def _posterior_stack(rel: np.ndarray, grid: np.ndarray,
     np.exp(e, out=e)
     mean = np.empty((bsz, 2, len(grid)))
     var = np.empty((bsz, 2, len(grid)))
-    gpkernels.posterior(e, np.ascontiguousarray(rel), grid, p, mean, var)
+    gpkernels.posterior(e, np.ascontiguousarray(rel), grid, p, mean, var,
+                        _scratch("factor", (k * k * gpkernels.BLOCK,)))
     return mean, var
 
 

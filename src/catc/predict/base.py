@@ -33,12 +33,16 @@ class Observation:
     yaw_rate: float = 0.0
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class Prediction:
     """The predicted state; ``var_x``/``var_y`` are NaN for models without uncertainty.
 
     ``source`` names what produced it (for example ``"gp"`` or ``"ca"`` when HGP's
     hybrid switch fell back), so that captures can show when each model was in use.
+
+    Not frozen, unlike :class:`Observation`: every ``predict`` returns a new one, ~1,500
+    a tick at 500 RVs, and a frozen dataclass's ``__init__`` (one ``object.__setattr__``
+    per field) costs 1.8 µs against 0.4 µs here (~2 ms a tick).
     """
 
     x: float

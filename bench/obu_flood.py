@@ -33,7 +33,7 @@ import numpy as np
 from catc.channel import ChannelConfig
 from catc.j2735 import encode_frame
 from catc.replay import plan
-from hil.transport.udp import free_ports
+from hil.transport.udp import free_ports, wait_bound
 from rve.run import DEFAULTS, replay
 from rve_pacing import ring_table
 
@@ -93,7 +93,7 @@ def main() -> int:
             text=True)  # a file, not a pipe: ten minutes of log lines would fill a pipe
         fl = None
         try:
-            time.sleep(1.0)
+            wait_bound(ports, alive=lambda: obu.poll() is None)
             if args.rate > 0:  # --rate 0: the same run without the flood (the control)
                 fl = subprocess.Popen([sys.executable, __file__, "--rate", str(args.rate),
                                        "--flooder", str(ports[0]), str(args.rvs),

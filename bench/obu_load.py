@@ -52,7 +52,7 @@ import numpy as np
 from catc.channel import ChannelConfig
 from catc.replay import plan
 from hil.pki import init as pki_init
-from hil.transport.udp import free_ports
+from hil.transport.udp import free_ports, wait_bound
 from rve.run import DEFAULTS, replay
 from rve_pacing import ring_table
 
@@ -139,7 +139,8 @@ def measure(n: int, per: float, predictor: str, seconds: float, capture: bool,
         obu = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                                text=True)
         try:
-            time.sleep(1.0)
+            if not wait_bound(ports, alive=lambda: obu.poll() is None):
+                raise RuntimeError(f"obu did not start: {obu.communicate()[1][-500:]}")
             args = argparse.Namespace(**DEFAULTS)
             args.to, args.host_to = ("127.0.0.1", ports[0]), ("127.0.0.1", ports[1])
             args.progress = False

@@ -26,7 +26,7 @@ from catc.cam import CamConfig, ContextAwareMap
 from catc.channel import ChannelConfig
 from catc.j2735 import encode_frame
 from catc.replay import plan, simulate
-from hil.transport.udp import free_ports
+from hil.transport.udp import free_ports, wait_bound
 from obu import run as obu_run
 from rve import run as rve_run
 from tests.test_transport import netns  # noqa: F401  (fixture)
@@ -39,8 +39,16 @@ def start_obu(cap: Path, ports: list[int], *extra: str, prefix: tuple[str, ...] 
                              f"127.0.0.1:{ports[0]}", "--host-listen", f"127.0.0.1:{ports[1]}",
                              "--capture", str(cap), "--idle-exit", "2", "--no-progress",
                              *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    time.sleep(1.0)  # the sockets are bound well before the RVE starts sending
+    # the RVE starts sending once both sockets are bound (start-up with --verify and its
+    # trust store takes over a second on a busy machine); a CAN bus, or a socket in
+    # another network namespace, is not in this namespace's /proc/net/udp: a fixed wait
+    if "can" in extra or prefix:
+        time.sleep(1.5)
+        bound = True
+    else:
+        bound = wait_bound(ports[:2], alive=lambda: proc.poll() is None)
     assert proc.poll() is None, proc.communicate()
+    assert bound, "the OBU did not bind its ports"
     return proc
 
 

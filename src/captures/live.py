@@ -21,7 +21,7 @@ import numpy as np
 
 from catc.mobility import MobilityTable
 from catc.sweep import Cell, cam_run
-from hil.transport.udp import free_ports
+from hil.transport.udp import free_ports, wait_bound
 
 
 class LiveError(RuntimeError):
@@ -33,8 +33,6 @@ def run_daemons(capture: Path, rve_flags: list[str], obu_flags: list[str],
     """Start ``obu run`` (listening on two free loopback ports), then ``rve run`` sending
     to them, both writing into ``capture``; wait for both.  Returns the OBU's stdout (its
     warning events as JSON lines)."""
-    import time
-
     ports = free_ports()
     py = sys.executable
     obu = subprocess.Popen(
@@ -43,7 +41,7 @@ def run_daemons(capture: Path, rve_flags: list[str], obu_flags: list[str],
          "--no-progress", *obu_flags], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
         text=True)
     try:
-        time.sleep(1.0)
+        wait_bound(ports, alive=lambda: obu.poll() is None)
         if obu.poll() is not None:
             raise LiveError("the OBU did not start: " + obu.communicate()[1].strip())
         rve = subprocess.run(

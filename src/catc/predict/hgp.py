@@ -392,6 +392,25 @@ def _tril(n: int) -> tuple[np.ndarray, np.ndarray]:
     return t
 
 
+def _window_exps(tau: np.ndarray, coef: np.ndarray, name: str) -> np.ndarray:
+    """α1²·exp(c·d²) = exp(c·d² + log α1²) for the packed lower triangle of the squared
+    time differences d² of each window ``tau`` (B, n), under models whose rows c and
+    log α1² are ``coef`` (2, M), shared by all windows, or (B, 2, M), one set per window:
+    one matrix product of [d², 1] with them, into work array ``name``; (B, P, M)."""
+    bsz, n = tau.shape
+    rows, cols = _tril(n)
+    lhs = _scratch("lhs", (bsz, len(rows), 2))
+    d2 = np.subtract(np.take(tau, rows, axis=1, out=_scratch("rows", (bsz, len(rows)))),
+                     np.take(tau, cols, axis=1, out=_scratch("cols", (bsz, len(rows)))),
+                     out=lhs[:, :, 0])
+    np.multiply(d2, d2, out=d2)
+    lhs[:, :, 1] = 1.0
+    e = np.matmul(lhs, coef, out=_scratch(name, (bsz, len(rows), coef.shape[-1])))
+    if _underflows(-float(tau[:, 0].min()), float(coef[..., 0, :].min())):
+        np.maximum(e, -700.0, out=e)
+    return np.exp(e, out=e)
+
+
 def _lml_stack(tau: np.ndarray, z: np.ndarray, p: np.ndarray, m: int,
                thetas: np.ndarray) -> np.ndarray:
     """:func:`lml_with_slope` of B windows under S = 2m models: ``tau`` (B, n), each ending
@@ -406,17 +425,7 @@ def _lml_stack(tau: np.ndarray, z: np.ndarray, p: np.ndarray, m: int,
     models of a window interleaved."""
     del thetas  # the constants carry everything
     bsz, n = tau.shape
-    rows, cols = _tril(n)
-    lhs = _scratch("lhs", (bsz, len(rows), 2))
-    d2 = np.subtract(np.take(tau, rows, axis=1, out=_scratch("rows", (bsz, len(rows)))),
-                     np.take(tau, cols, axis=1, out=_scratch("cols", (bsz, len(rows)))),
-                     out=lhs[:, :, 0])
-    np.multiply(d2, d2, out=d2)
-    lhs[:, :, 1] = 1.0
-    e = np.matmul(lhs, p[:, _C:_LOG_S1 + 1].T, out=_scratch("lml", (bsz, len(rows), len(p))))
-    if _underflows(-float(tau[:, 0].min()), float(p[:, _C].min())):
-        np.maximum(e, -700.0, out=e)
-    np.exp(e, out=e)
+    e = _window_exps(tau, p[:, _C:_LOG_S1 + 1].T, "lml")
     out = np.empty((bsz, len(p)))
     gpkernels.select_lml(e, np.ascontiguousarray(tau), np.ascontiguousarray(z), p, m, out,
                          _scratch("factor", ((n + 1) * (n + 1) * len(p),)))
@@ -437,19 +446,8 @@ def _posterior_stack(rel: np.ndarray, grid: np.ndarray,
     bsz, _, k = rel.shape
     n = k - 1
     tau = rel[:, 0, :n]
-    rows, cols = _tril(n)
-    lhs = _scratch("lhs", (bsz, len(rows), 2))
-    d2 = np.subtract(np.take(tau, rows, axis=1, out=_scratch("rows", (bsz, len(rows)))),
-                     np.take(tau, cols, axis=1, out=_scratch("cols", (bsz, len(rows)))),
-                     out=lhs[:, :, 0])
-    np.multiply(d2, d2, out=d2)
-    lhs[:, :, 1] = 1.0
     p = np.ascontiguousarray(p)
-    e = np.matmul(lhs, p[:, :, _C:_LOG_S1 + 1].transpose(0, 2, 1),
-                  out=_scratch("cov", (bsz, len(rows), 2)))
-    if _underflows(-float(tau[:, 0].min()), float(p[:, :, _C].min())):
-        np.maximum(e, -700.0, out=e)
-    np.exp(e, out=e)
+    e = _window_exps(tau, p[:, :, _C:_LOG_S1 + 1].transpose(0, 2, 1), "cov")
     mean = np.empty((bsz, 2, len(grid)))
     var = np.empty((bsz, 2, len(grid)))
     gpkernels.posterior(e, np.ascontiguousarray(rel), grid, p, mean, var,

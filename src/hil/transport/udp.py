@@ -29,6 +29,8 @@ import contextlib
 import errno
 import logging
 import socket
+import time
+from pathlib import Path
 
 import asyncio_dgram
 
@@ -213,6 +215,33 @@ async def open_receiver(*, listen: Address, host_listen: Address, rcvbuf: int = 
         raise
     streams = {ch: await asyncio_dgram.from_socket(sock) for ch, sock in socks.items()}
     return UdpReceiver(streams, min(granted), max_frame)
+
+
+def wait_bound(ports: list[int], timeout: float = 15.0, alive=None) -> bool:
+    """Wait until a UDP socket is bound to each of ``ports`` on this machine (a daemon
+    started with them is listening): True when they are, False after ``timeout`` s or as
+    soon as ``alive()`` says the daemon exited.  Reads /proc/net/udp and udp6, so binding
+    nothing itself (a probe bind could take the port from the daemon); where they do not
+    exist it waits a second and says True."""
+    tables = [Path("/proc/net/udp"), Path("/proc/net/udp6")]
+    if not tables[0].exists():
+        time.sleep(1.0)
+        return True
+    want = {f"{p:04X}" for p in ports}
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        bound = set()
+        for table in tables:
+            with contextlib.suppress(OSError):
+                for line in table.read_text().splitlines()[1:]:
+                    local = line.split()[1]  # ADDRESS:PORT in hex
+                    bound.add(local.rsplit(":", 1)[1])
+        if want <= bound:
+            return True
+        if alive is not None and not alive():
+            return False
+        time.sleep(0.02)
+    return False
 
 
 def free_ports(n: int = 2, host: str = "127.0.0.1") -> list[int]:

@@ -5,9 +5,9 @@ Why compiled.  One OBU tick at 500 RVs and PER 50 % selects bank models for ~75 
 (32 models each: ~2,400 Cholesky factorisations of 31 × 31) and makes ~250 forecasts
 (500 more factorisations and triangular solves with 32 right-hand sides).  From Python
 each LAPACK call costs ~6 µs, mostly call overhead at this size, and the calls could not
-be batched (numpy's stacked ``cholesky`` is slower still, ``bench/step.py`` in issue 17's
-note).  Here the systems of one batch are *interleaved*: element (i, j) of every system
-lies side by side in memory, so each scalar step of the textbook Cholesky and forward
+be batched (numpy's stacked ``cholesky`` is slower still: ``python bench/gp_kernels.py``).
+Here the systems of one batch are *interleaved*: element (i, j) of every system lies side
+by side in memory, so each scalar step of the textbook Cholesky and forward
 substitution is one loop over the systems that the compiler turns into SIMD, with no
 reductions reassociated (the arithmetic of each system is the textbook order; the
 reference formulas in :mod:`catc.predict.hgp` agree to round-off, tests/test_hgp.py).
@@ -27,8 +27,11 @@ import math
 import numpy as np
 from numba import njit
 
-# Columns of a model-constants row (catc.predict.hgp._consts; kept equal by a test).
-_C, _LOG_S1, _S1, _S2, _S1G2, _KDD, _NOISE = range(7)
+#: Columns of a model-constants row (:func:`catc.predict.hgp._consts` fills them): for
+#: θ = (γ, α1, α2), −1/(2γ²), log α1² (these two adjacent: one matrix product makes the
+#: exponents), α1², α2², var f′(0) + slope noise, value noise.
+C, LOG_S1, S1, S2, KDD, NOISE = range(6)
+CONSTS = 6
 
 #: Systems factored together in :func:`posterior`: 32 doubles are four AVX-512 registers
 #: (eight AVX2 ones) per step, and a block's matrices (31 × 31 × 32 × 8 B = 246 kB) stay in
@@ -77,16 +80,17 @@ def _solve(a, k, nb, rhs, out):  # pragma: no cover - compiled
 
 
 @njit(**_OPTS)
-def _assemble(a, e, col, tau, tt_w, n, nb, s2, m2c, noise, kdd):  # pragma: no cover
+def _assemble(a, e, tau, tt_w, n, nb, s2, m2c, noise, kdd):  # pragma: no cover
     """The (n + 1) × (n + 1) covariance of n values at ``tau`` (ending at 0) and the slope
-    at 0 (catc.predict.hgp._slope_system) for nb interleaved systems, lower triangle:
-    ``e[:, col:col + nb]`` the packed α1²·exp(c·d²) of the values, ``tt_w`` scratch (nb,)."""
+    at 0 (catc.predict.hgp._slope_system) for nb interleaved systems on the same times,
+    lower triangle: ``e`` (P, nb) the packed α1²·exp(c·d²) of the values, ``tt_w`` scratch
+    (nb,).  (:func:`posterior` assembles its own: its systems have different times.)"""
     for i in range(n):
         base = i * (i + 1) // 2
         for j in range(i + 1):
             tt = tau[i] * tau[j]
             for s in range(nb):
-                a[i, j, s] = e[base + j, col + s] + s2[s] * tt
+                a[i, j, s] = e[base + j, s] + s2[s] * tt
         for s in range(nb):
             a[i, i, s] += noise[s]
     # slope row: ∂κ(τ_j, s)/∂s at s = 0 = τ_j·(α1²/γ²·exp(−τ_j²/(2γ²)) + α2²); the
@@ -94,7 +98,7 @@ def _assemble(a, e, col, tau, tt_w, n, nb, s2, m2c, noise, kdd):  # pragma: no c
     last = (n - 1) * n // 2
     for j in range(n):
         for s in range(nb):
-            tt_w[s] = e[last + j, col + s] * m2c[s] + s2[s]
+            tt_w[s] = e[last + j, s] * m2c[s] + s2[s]
         for s in range(nb):
             a[n, j, s] = tau[j] * tt_w[s]
     for s in range(nb):
@@ -108,7 +112,7 @@ def select_lml(e, tau, z, p, m, out, a):  # pragma: no cover - compiled
 
     ``e`` (B, P, S): packed α1²·exp(c·d²) of window b under model s (P = n(n+1)/2);
     ``tau`` (B, n) each ending at 0; ``z`` (B, 2, n + 1) speed and heading values with their
-    slope; ``p`` (S, 9) model constants, the first ``m`` speed models (scored on z[:, 0]),
+    slope; ``p`` (S, CONSTS) model constants, the first ``m`` speed models (scored on z[:, 0]),
     then heading ones (on z[:, 1]); ``out`` (B, S); ``a`` a work array of at least
     (n + 1)² · S (a fresh one per call costs page faults: 250 kB).  A model whose
     covariance is not positive definite scores −inf."""
@@ -120,13 +124,13 @@ def select_lml(e, tau, z, p, m, out, a):  # pragma: no cover - compiled
     zz = np.empty((k, ns))
     tt_w = np.empty(ns)
     bad = np.empty(ns, dtype=np.bool_)
-    s2 = p[:, _S2].copy()
-    m2c = -2.0 * p[:, _C]
-    noise = p[:, _NOISE].copy()
-    kdd = p[:, _KDD].copy()
+    s2 = p[:, S2].copy()
+    m2c = -2.0 * p[:, C]
+    noise = p[:, NOISE].copy()
+    kdd = p[:, KDD].copy()
     half_log_2pi = 0.5 * k * math.log(2.0 * math.pi)
     for b in range(bsz):
-        _assemble(a, e[b], 0, tau[b], tt_w, n, ns, s2, m2c, noise, kdd)
+        _assemble(a, e[b], tau[b], tt_w, n, ns, s2, m2c, noise, kdd)
         _factor(a, k, ns, bad)
         for i in range(k):
             for s in range(m):
@@ -152,7 +156,7 @@ def posterior(e, rel, grid, p, mean, var, a):  # pragma: no cover - compiled
 
     ``e`` (B, P, 2): packed α1²·exp(c·d²) of each window under its two models; ``rel``
     (B, 3, n + 1): τ then 0, speed values and slope, heading values and slope; ``p``
-    (B, 2, 9) the model constants; ``mean``, ``var`` (B, 2, G); ``a`` a work array of at
+    (B, 2, CONSTS) the model constants; ``mean``, ``var`` (B, 2, G); ``a`` a work array of at
     least (n + 1)² · BLOCK.
 
     The covariances with the grid, α1²·exp(c·(g − τ_i)²), are not exponentials of their
@@ -188,12 +192,12 @@ def posterior(e, rel, grid, p, mean, var, a):  # pragma: no cover - compiled
         nb = min(BLOCK, nr - r0)
         for s in range(nb):
             b, c = divmod(r0 + s, 2)
-            s1[s] = p[b, c, _S1]
-            s2[s] = p[b, c, _S2]
-            cc[s] = p[b, c, _C]
-            m2c[s] = -2.0 * p[b, c, _C]
-            noise[s] = p[b, c, _NOISE]
-            kdd[s] = p[b, c, _KDD]
+            s1[s] = p[b, c, S1]
+            s2[s] = p[b, c, S2]
+            cc[s] = p[b, c, C]
+            m2c[s] = -2.0 * p[b, c, C]
+            noise[s] = p[b, c, NOISE]
+            kdd[s] = p[b, c, KDD]
             for i in range(n):
                 tau[i, s] = rel[b, 0, i]
             for i in range(k):

@@ -325,27 +325,23 @@ class RegularSlopePosterior:
 # calls (that, not arithmetic, is what a 31 × 31 system costs from Python), stacked over
 # models and over predictors: ``forecast_many`` runs one set of calls for many predictors.
 
-_LOG_2PI = math.log(2.0 * math.pi)
-
-# Columns of a model-constants row (see _consts).
-_C, _LOG_S1, _S1, _S2, _S1G2, _KDD, _NOISE, _FLOOR, _SLOPE = range(9)
+# Columns of a model-constants row: the kernels' (catc.predict.gpkernels.C ...).
+_C, _LOG_S1, _S1, _S2, _KDD, _NOISE = (gpkernels.C, gpkernels.LOG_S1, gpkernels.S1,
+                                       gpkernels.S2, gpkernels.KDD, gpkernels.NOISE)
 
 
 def _consts(thetas: np.ndarray, noise: np.ndarray, slope_var: np.ndarray) -> np.ndarray:
-    """Per model row θ = (γ, α1, α2) with its value and slope noise: −1/(2γ²), log α1², α1²,
-    α2², α1²/γ², var f′(0) + slope noise, value noise, min(value noise, slope noise) and
-    slope noise; shape (R, 9)."""
+    """Per model row θ = (γ, α1, α2) with its value and slope noise, the columns of
+    :data:`catc.predict.gpkernels.C` and after: −1/(2γ²), log α1², α1², α2², var f′(0) +
+    slope noise, value noise; shape (R, gpkernels.CONSTS)."""
     th = np.asarray(thetas, dtype=float)
     gamma, a1, a2 = th[:, 0], th[:, 1], th[:, 2]
-    out = np.empty((len(th), 9))
+    out = np.empty((len(th), gpkernels.CONSTS))
     out[:, _C] = -0.5 / (gamma * gamma)
     out[:, _S1] = a1 * a1
     out[:, _S2] = a2 * a2
-    out[:, _S1G2] = a1 * a1 / (gamma * gamma)
     out[:, _KDD] = a1 * a1 / (gamma * gamma) + a2 * a2 + slope_var
     out[:, _NOISE] = noise
-    out[:, _FLOOR] = np.minimum(noise, slope_var)
-    out[:, _SLOPE] = slope_var
     out[:, _LOG_S1] = np.log(a1 * a1)
     return out
 
@@ -414,7 +410,7 @@ def _window_exps(tau: np.ndarray, coef: np.ndarray, name: str) -> np.ndarray:
 def _lml_stack(tau: np.ndarray, z: np.ndarray, p: np.ndarray, m: int,
                thetas: np.ndarray) -> np.ndarray:
     """:func:`lml_with_slope` of B windows under S = 2m models: ``tau`` (B, n), each ending
-    at 0, ``z`` (B, 2, n + 1) the speed and heading values with their slope, ``p`` (S, 9) the
+    at 0, ``z`` (B, 2, n + 1) the speed and heading values with their slope, ``p`` (S, 6) the
     constants of ``thetas`` (m speed models scored on z[:, 0], then m heading models on
     z[:, 1]).  Returns (B, S).
 
@@ -437,7 +433,7 @@ def _posterior_stack(rel: np.ndarray, grid: np.ndarray,
     """:func:`posterior_with_slope` of speed and heading for B windows at once.
 
     ``rel`` (B, 3, n + 1): τ (ending at 0, then a 0 for the slope point), the speed values
-    and slope, the heading values and slope; ``p`` (B, 2, 9) each window's speed and heading
+    and slope, the heading values and slope; ``p`` (B, 2, 6) each window's speed and heading
     model constants.  Returns the means and latent variances (not clipped), (B, 2, len(grid)).
 
     numpy computes the exponentials of each window's value covariance under its two models
@@ -551,7 +547,7 @@ class _BankCache:
         self.posterior: dict[tuple[int, int], tuple[RegularSlopePosterior, ...]] = {}
 
     def pair(self, i: int, j: int) -> np.ndarray:
-        """The constants of speed model ``i`` and heading model ``j``, (2, 9)."""
+        """The constants of speed model ``i`` and heading model ``j``, (2, 6)."""
         p = self.pairs.get((i, j))
         if p is None:
             p = self.pairs[i, j] = self.consts[[i, self.m + j]]
@@ -604,7 +600,7 @@ class _WindowPredictor:
 @dataclass
 class _Selection:
     """The models in use: θ per series, their bank rows (None for models from elsewhere:
-    online ones, or a selection on values only) and their constants (2, 9)."""
+    online ones, or a selection on values only) and their constants (2, 6)."""
 
     theta_s: np.ndarray
     theta_h: np.ndarray

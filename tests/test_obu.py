@@ -173,6 +173,47 @@ def test_garbage_is_counted_and_changes_nothing(tmp_path):
     assert b["received"] == a["received"]
 
 
+def test_a_tick_takes_every_frame_received_before_its_host_frame(tmp_path, monkeypatch):
+    """Which tick a frame joins depends on the order of the frames, not on how fast the
+    OBU reads them: 10 RV frames sent before a host frame are all stepped at that host
+    frame even when each takes 3 ms to handle (a loaded 2-core machine verifying
+    signatures), three times the collect rule's 1 ms quiet gap.  The event loop reads one
+    datagram per socket per pass, so the host frame is read while most RV frames still
+    wait in the socket buffer; the old rule stepped without them."""
+    handle = obu_run.Obu.frame
+
+    def slow_frame(self, channel, data, rx_unix):
+        if channel == "rv":
+            time.sleep(0.003)
+        handle(self, channel, data, rx_unix)
+
+    monkeypatch.setattr(obu_run.Obu, "frame", slow_frame)
+    ports = free_ports()
+    ns = dict(obu_run.DEFAULTS, listen=("127.0.0.1", ports[0]),
+              host_listen=("127.0.0.1", ports[1]), predictor="ca", capture=str(tmp_path),
+              idle_exit=0.5, progress=False)
+
+    def bsm(temp_id: int) -> bytes:
+        return encode_frame(BSM(msg_cnt=1, temp_id=temp_id, sec_mark=1000, lat=42.28,
+                                lon=-83.74 + temp_id * 1e-4, elev=200.0, speed=10.0,
+                                heading=90.0))
+
+    async def main():
+        serving = asyncio.create_task(obu_run.serve(argparse.Namespace(**ns)))
+        assert await asyncio.to_thread(wait_bound, ports)
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:  # no await between
+            for k in range(10):
+                s.sendto(bsm(0x100 + k), ("127.0.0.1", ports[0]))
+            s.sendto(bsm(0x1), ("127.0.0.1", ports[1]))
+        return await asyncio.wait_for(serving, 30)
+
+    with contextlib.redirect_stdout(open(tmp_path / "warnings.jsonl", "w")):
+        counters = asyncio.run(main())
+    assert counters["ticks"] == 1 and counters["frames_rv"] == 10
+    rx = [json.loads(line) for line in (tmp_path / "obu.rx.jsonl").open()]
+    assert [r["status"] for r in rx if r["channel"] == "rv"] == ["ok"] * 10
+
+
 def test_can_end_to_end_on_the_virtual_bus(tmp_path):
     channel = f"obu-{uuid.uuid4().hex}"
     ns = dict(obu_run.DEFAULTS, transport="can", can_interface="virtual", can_channel=channel,

@@ -131,6 +131,27 @@ def test_udp_burst_is_not_lost_at_the_socket():
     run(main())
 
 
+def test_udp_waiting_sees_datagrams_the_loop_has_not_read_yet():
+    """waiting() is True from the moment a datagram is in the socket's buffer (sendto on
+    loopback returns after delivery) until recv() has handed it out, and False after."""
+    async def main():
+        async with await open_receiver("udp", listen=("127.0.0.1", 0),
+                                       host_listen=("127.0.0.1", 0)) as rx:
+            assert not rx.waiting()
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as raw:
+                raw.sendto(b"rv", rx.addresses["rv"])
+                assert rx.waiting()  # no await yet: still in the kernel buffer
+                raw.sendto(b"host", rx.addresses["host"])
+            seen = []
+            while len(seen) < 2:
+                seen.append((await rx.recv()).data)
+                assert rx.waiting() == (len(seen) < 2)
+            assert sorted(seen) == [b"host", b"rv"]
+        assert not rx.waiting()  # closed
+
+    run(main())
+
+
 def test_udp_port_in_use_is_a_one_line_error_and_leaks_nothing():
     async def main():
         async with await open_receiver("udp", listen=("127.0.0.1", 0),

@@ -7,9 +7,12 @@ envelope, and at every host-vehicle frame (10 Hz) steps the CA-TC
 clock is the host vehicle's (:class:`catc.cam.SecMarkClock`).
 
 Tick rule: the step at host frame ``T`` takes every RV message received so far that was
-generated at or before ``T``; newer ones wait for a later tick.  Before stepping it lets
-the RV channel go quiet (up to ``--collect-ms``), so frames sent just before the host's
-are in the tick, as a radio's would be within one 100 ms slot.
+generated at or before ``T``; newer ones wait for a later tick.  Before stepping it takes
+every frame that reached the receiver before the host frame (in its queue or still in the
+socket buffer: ``Receiver.waiting``, up to 50 ms), then lets the RV channel go quiet (up
+to ``--collect-ms``), so frames sent just before the host's are in the tick, as a radio's
+would be within one 100 ms slot.  Which tick a frame joins thus depends on the order of
+the frames, not on how fast this process reads them.
 
 Security (``--verify log|enforce --trust PKI_DIR|ROOT.oer``): every RV frame's IEEE 1609.2
 envelope (inside a WSMP message or not) is verified with :class:`catc.security.Verifier`
@@ -488,6 +491,12 @@ class Obu:
             self.warn_out.close()
 
 
+#: The longest a tick waits (s) for the frames that reached the receiver before its host
+#: frame, when that is longer than --collect-ms: half the 100 ms tick period, so a flood
+#: delays a tick but never stops it.
+DRAIN_S = 0.05
+
+
 async def _open_receiver(args: argparse.Namespace):
     from hil.transport import open_receiver
 
@@ -545,15 +554,22 @@ async def serve(args: argparse.Namespace) -> dict:
                 if channel != "host" or obu.host is None:
                     continue
                 host, obu.host = obu.host, None
-                # Let the RV channel go quiet, so frames sent before the host's are in
-                # this tick; stop at the next host frame.
-                deadline = time.monotonic() + collect_s
-                while time.monotonic() < deadline:
+                # Take every frame that reached the receiver before this host frame (still
+                # in its queue or socket buffer), then let the RV channel go quiet (up to
+                # --collect-ms), so frames sent just before the host's are in this tick;
+                # stop at the next host frame.
+                begun = time.monotonic()
+                deadline, limit = begun + collect_s, begun + max(collect_s, DRAIN_S)
+                while True:
                     await asyncio.sleep(0)
                     while inbox and inbox[0][0] == "rv":
                         obu.frame(*inbox.popleft())
-                    if (inbox and inbox[0][0] == "host") \
-                            or time.monotonic() - obu.last_rv_frame > 0.001:
+                    now = time.monotonic()
+                    if (inbox and inbox[0][0] == "host") or now >= limit:
+                        break
+                    if rx.waiting():
+                        continue
+                    if now >= deadline or now - obu.last_rv_frame > 0.001:
                         break
                 obu.tick(host)
                 obu.gc.after_tick()

@@ -140,6 +140,7 @@ class Receiver(abc.ABC):
 
     def _end(self) -> None:
         self._queue.put_nowait(None)
+        self._ended = True
 
     async def recv(self) -> Received:
         """The next frame from either channel, in arrival order.  Raises
@@ -149,6 +150,13 @@ class Receiver(abc.ABC):
             self._queue.put_nowait(None)  # every later recv() fails the same way
             raise TransportError(f"{self.kind} receiver is closed")
         return got
+
+    def waiting(self) -> bool:
+        """True while a frame that has reached this receiver is not yet handed out by
+        :meth:`recv`: in its queue, or (for backends that can tell) still in the kernel's
+        socket buffer.  The OBU drains these before a tick: they arrived before the
+        host frame that triggers it."""
+        return self._queue.qsize() > int(getattr(self, "_ended", False))  # not the end mark
 
     @abc.abstractmethod
     async def aclose(self) -> None:

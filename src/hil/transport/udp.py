@@ -1,4 +1,5 @@
-"""UDP transport: one MessageFrame per datagram, one port per channel (asyncio-dgram).
+"""UDP transport: one MessageFrame per datagram, one port per channel (asyncio-dgram
+sends; the receiver is an asyncio datagram protocol).
 
 Sender options: ``to=(host, port)`` for the RV frames and ``host_to=(host, port)`` for
 the host vehicle's frames.  Receiver options: ``listen=(host, port)`` and
@@ -28,6 +29,7 @@ import asyncio
 import contextlib
 import errno
 import logging
+import select
 import socket
 import time
 from pathlib import Path
@@ -155,48 +157,73 @@ def _bound_socket(addr: Address, rcvbuf: int) -> tuple[socket.socket, int]:
     return sock, granted
 
 
-class UdpReceiver(Receiver):
-    kind = "udp"
-    """Two bound UDP sockets; a task per socket moves datagrams into one queue."""
+class _Channel(asyncio.DatagramProtocol):
+    """Hands every datagram of one bound socket straight to the receiver's queue."""
 
-    def __init__(self, streams: dict[str, asyncio_dgram.aio.DatagramServer], rcvbuf: int,
-                 max_frame: int) -> None:
-        self._streams = streams
+    def __init__(self, receiver: UdpReceiver, channel: str) -> None:
+        self.receiver, self.channel = receiver, channel
+
+    def datagram_received(self, data: bytes, addr) -> None:
+        self.receiver._datagram(self.channel, data)
+
+    def error_received(self, exc: OSError) -> None:
+        _count_error(self.receiver.stats, exc)
+
+
+class UdpReceiver(Receiver):
+    """Two bound UDP sockets whose datagrams go straight into one queue (an asyncio
+    datagram protocol per socket, no task between the event loop and the queue)."""
+
+    kind = "udp"
+
+    def __init__(self, socks: dict[str, socket.socket], rcvbuf: int, max_frame: int) -> None:
+        self._socks = socks
         #: The bound (host, port) of each channel (useful after binding port 0).
-        self.addresses = {ch: s.sockname[:2] for ch, s in streams.items()}
+        self.addresses = {ch: s.getsockname()[:2] for ch, s in socks.items()}
         self._max_frame = max_frame
         self._start_queue()
         self._closed = False
+        self._transports: list[asyncio.DatagramTransport] = []
         self.stats = {"frames": 0, "bytes": 0, "rv": 0, "host": 0, "oversized": 0,
                       "errors": 0, "rcvbuf": rcvbuf}
-        self._pumps = [asyncio.create_task(self._pump(ch, s), name=f"udp-recv-{ch}")
-                       for ch, s in streams.items()]
 
-    async def _pump(self, channel: str, stream: asyncio_dgram.aio.DatagramServer) -> None:
-        while True:
-            try:
-                data, _ = await stream.recv()
-            except asyncio_dgram.TransportClosed:
-                return
-            except OSError as exc:
-                _count_error(self.stats, exc)
-                continue
-            if len(data) > self._max_frame:
-                count(self.stats, "oversized")
-                continue
-            self._deliver(channel, data)
+    async def _open(self) -> None:
+        loop = asyncio.get_running_loop()
+        for channel, sock in self._socks.items():
+            transport, _ = await loop.create_datagram_endpoint(
+                lambda ch=channel: _Channel(self, ch), sock=sock)
+            self._transports.append(transport)
+
+    def _datagram(self, channel: str, data: bytes) -> None:
+        if self._closed:
+            return
+        if len(data) > self._max_frame:
+            count(self.stats, "oversized")
+            return
+        self._deliver(channel, data)  # type: ignore[arg-type]
+
+    def waiting(self) -> bool:
+        """Also True while a datagram sits in a socket's kernel buffer, not yet read by
+        the event loop (it reads one datagram per socket per pass).  Over loopback a
+        datagram is in the receiver's buffer when ``sendto`` returns, so every RV frame
+        sent before a host frame is found here or in the queue once that host frame is
+        received."""
+        if self._closed:
+            return False
+        if super().waiting():
+            return True
+        ready, _, _ = select.select(list(self._socks.values()), [], [], 0)
+        return bool(ready)
 
     async def aclose(self) -> None:
         if self._closed:
             return
         self._closed = True
-        for task in self._pumps:
-            task.cancel()
-        for task in self._pumps:
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
-        for stream in self._streams.values():
-            stream.close()
+        for transport in self._transports:
+            transport.close()
+        for sock in self._socks.values():
+            sock.close()
+        await asyncio.sleep(0)  # the transports' connection_lost callbacks
         self._end()
 
 
@@ -213,8 +240,9 @@ async def open_receiver(*, listen: Address, host_listen: Address, rcvbuf: int = 
         for sock in socks.values():
             sock.close()
         raise
-    streams = {ch: await asyncio_dgram.from_socket(sock) for ch, sock in socks.items()}
-    return UdpReceiver(streams, min(granted), max_frame)
+    receiver = UdpReceiver(socks, min(granted), max_frame)
+    await receiver._open()
+    return receiver
 
 
 def wait_bound(ports: list[int], timeout: float = 15.0, alive=None) -> bool:

@@ -26,7 +26,8 @@ cell, one after the other in the same run, and prints each mode's tick p99 and O
 ratio to the ``off`` row of its cell.  ``--verify`` alone means ``on``.
 
     python bench/obu_load.py [--json] [--rvs 100,250,500] [--per 0,50] [--predictors hgp,ca]
-                             [--seconds 15] [--capture] [--verify [off,on,signed|both]]
+                             [--seconds 15] [--capture | --keep DIR]
+                             [--verify [off,on,signed|both]]
 
 Target (issue 6): 500 RVs with hgp at PER 50 %: no socket loss and tick p99 <= 50 ms.
 With --verify the same target holds for the verifying OBU.
@@ -113,7 +114,8 @@ class WebClients:
 
 
 def measure(n: int, per: float, predictor: str, seconds: float, capture: bool,
-            verify: str = "off", web_clients: int | None = None) -> dict:
+            verify: str = "off", web_clients: int | None = None,
+            keep: Path | None = None) -> dict:
     ports = free_ports()
     web_port = None
     if web_clients is not None:
@@ -126,7 +128,9 @@ def measure(n: int, per: float, predictor: str, seconds: float, capture: bool,
         cmd = [sys.executable, "-m", "obu.cli", "run", "--listen", f"127.0.0.1:{ports[0]}",
                "--host-listen", f"127.0.0.1:{ports[1]}", "--predictor", predictor,
                "--idle-exit", "2", "--no-progress", "--warnings", os.devnull]
-        if capture:
+        if keep is not None:
+            cmd += ["--capture", str(keep / f"rvs{n}-per{per:g}-{predictor}-{verify}")]
+        elif capture:
             cmd += ["--capture", str(Path(tmp) / "capture")]
         if web_port is not None:
             cmd += ["--web", str(web_port)]
@@ -236,6 +240,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--predictors", default="hgp,ca")
     ap.add_argument("--seconds", type=float, default=15.0, help="replay length per cell")
     ap.add_argument("--capture", action="store_true", help="the OBU also writes its capture")
+    ap.add_argument("--keep", type=Path, metavar="DIR",
+                    help="the OBU writes its capture into DIR/rvsN-perP-PREDICTOR-VERIFY and "
+                         "it is kept (obu.ticks.jsonl has every tick's step time)")
     ap.add_argument("--verify", nargs="?", const="on", default="off", type=verify_modes,
                     metavar="MODES",
                     help="IEEE 1609.2: on (the RVE signs, the OBU runs --verify enforce), off "
@@ -254,7 +261,8 @@ def main(argv: list[str] | None = None) -> int:
             for p in args.predictors.split(","):
                 for mode in args.verify:
                     for k in webs:
-                        rows.append(measure(n, per, p, args.seconds, args.capture, mode, k))
+                        rows.append(measure(n, per, p, args.seconds, args.capture, mode, k,
+                                            args.keep))
                     if not args.json:
                         print(f"  done {n} RVs PER {per:g} % {p} verify {mode}",
                               file=sys.stderr)

@@ -163,18 +163,15 @@ def test_misbehavior_detection_reports_nothing_on_a_clean_run(tmp_path):
     for cap, extra in ((with_mbd, ("--mbd",)), (without, ())):
         ports = free_ports()
         obu = start_obu(cap, ports, "--predictor", "ca", *extra)
-        rve(ports, "--per", "30", "--seed", "2", "--speed", "4", "--duration", "30",
+        rve(ports, "--per", "30", "--seed", "2", "--speed", "8", "--duration", "30",
             "--capture", str(cap))
         finish(obu)
     assert (with_mbd / "obu.mbr.jsonl").read_text() == ""
     counters = json.loads((with_mbd / "obu.counters.json").read_text())
     assert not [k for k in counters if k.startswith("mbd_") and k != "mbd_no_host_yet"]
     a, b = score(with_mbd), score(without)
-    for key in ("fcw_accuracy", "fcw", "warnings", "received"):
+    for key in ("fcw_accuracy", "fcw", "warnings", "received", "pte95_m", "pte95_per_rv"):
         assert a[key] == b[key], key
-    # (a frame that arrives just after its host tick goes to the next one in either run,
-    # so the per-tick estimates may differ by such timing, by less than a millimetre)
-    assert abs(a["pte95_m"] - b["pte95_m"]) < 1e-3
 
 
 def test_captures_sweep_puts_an_attack_beside_per(tmp_path):

@@ -17,7 +17,7 @@ from tests.conftest import shared_path
 from tests.test_obu import finish, rve, score, start_obu
 
 PY = sys.executable
-RUN = ("--per", "50", "--seed", "7", "--speed", "4", "--duration", "40")
+RUN = ("--per", "50", "--seed", "7", "--speed", "8", "--duration", "40")
 
 
 def _dataset() -> str:
@@ -31,11 +31,11 @@ def _run(tmp, dataset: str, flood: bool) -> tuple[dict, dict, dict | None]:
     ports = free_ports()
     obu = start_obu(tmp, ports, "--predictor", "hgp")
     flooder = None
-    if flood:  # 40 s of data at speed 4: 10 s; the flood runs a little longer
+    if flood:  # 40 s of data at speed 8: 5 s; the flood runs a little longer
         flooder = subprocess.Popen(
             [PY, "-m", "rve.cli", "flood", "--dataset", dataset, "--to",
-             f"127.0.0.1:{ports[0]}", "--rate", "2000", "--duration", "11", "--per", "50",
-             "--seed", "7", "--speed", "4"], stdout=subprocess.PIPE, text=True)
+             f"127.0.0.1:{ports[0]}", "--rate", "2000", "--duration", "6", "--per", "50",
+             "--seed", "7", "--speed", "8"], stdout=subprocess.PIPE, text=True)
     summary = rve(ports, "--dataset", dataset, *RUN, "--capture", str(tmp))
     flood_out = None
     if flooder is not None:
@@ -54,7 +54,7 @@ def test_a_flood_of_garbage_changes_nothing_and_is_accounted_for(tmp_path):
     (tmp_path / "flood").mkdir()
     clean, _, _ = _run(tmp_path / "clean", dataset, flood=False)
     flooded, c, sent = _run(tmp_path / "flood", dataset, flood=True)
-    assert sent["datagrams"] > 15_000 and sent["sent"]["copy"] > 5_000
+    assert sent["datagrams"] > 8_000 and sent["sent"]["copy"] > 2_500
     # nothing the OBU decided changed
     key = lambda e: (e["app"], e["kind"], e["rv"], e["t"])  # noqa: E731
     assert sorted(map(key, flooded["events"])) == sorted(map(key, clean["events"]))

@@ -156,7 +156,7 @@ def test_garbage_is_counted_and_changes_nothing(tmp_path):
         thread = threading.Thread(target=spray, daemon=True)
         if noisy:
             thread.start()
-        rve(ports, "--per", "30", "--seed", "4", "--speed", "4", "--duration", "25",
+        rve(ports, "--per", "30", "--seed", "4", "--speed", "8", "--duration", "25",
             "--capture", str(cap))
         stop.set()
         if noisy:

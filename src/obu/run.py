@@ -102,7 +102,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--warnings", metavar="FILE", help="warning events as JSON lines here "
                    "instead of stdout")
     p.add_argument("--collect-ms", type=float, help="longest wait for the RV channel to go "
-                   "quiet before a step (default 5)")
+                   "quiet before a step, after the frames already received are taken "
+                   "(default 5)")
     p.add_argument("--max-tracks", type=int, help="most RVs tracked at once (default 1000)")
     p.add_argument("--can-interface", choices=("socketcan", "virtual", "udp_multicast"),
                    help="python-can interface for --transport can (default virtual)")

@@ -514,6 +514,33 @@ def test_branches_answer_where_their_recent_gaps_were_better():
     assert p.branch(0.2) == 0 and not any(p._scored)
 
 
+def test_blend_weights_branches_by_inverse_score_and_drops_the_bad_ones():
+    """branch_blend: the answer in a gap is the branches' answers (the GP's read of its
+    forecast, CA's) averaged with weights 1/score over those scoring within the ratio
+    of the best; the same run with ratio 1 keeps only the best branch."""
+    from catc.predict import make_predictor
+    from catc.predict.forecast import read
+
+    obs = drive(80, v0=12.0, a=1.5, heading0=30.0)
+    for ratio in (math.inf, 1.0):
+        p = HgpPredictor(BANK, HgpConfig(branches=("ca",), branch_blend=ratio))
+        ref = make_predictor("ca")
+        for o in obs[:60:2]:
+            p.update(o)
+            ref.update(o)
+            p.predict(o.t + 0.1)
+        t = obs[58].t + 0.2
+        got, gp, ca = p.predict(t), read(p._forecast, p._since_last(t)[1]), ref.predict(t)
+        s_gp, s_ca = p._score[0]
+        assert s_gp > 2.0 * s_ca > 0.0
+        w_ca = (1 / s_ca) / (1 / s_gp + 1 / s_ca) if ratio > 1 else 1.0
+        assert got.x == pytest.approx((1 - w_ca) * gp.x + w_ca * ca.x, abs=1e-12)
+        assert got.y == pytest.approx((1 - w_ca) * gp.y + w_ca * ca.y, abs=1e-12)
+        assert got.speed == pytest.approx((1 - w_ca) * gp.speed + w_ca * ca.speed, abs=1e-12)
+        assert (got.var_x, got.var_y) == (gp.var_x, gp.var_y)
+        assert min(gp.x, ca.x) <= got.x <= max(gp.x, ca.x) and gp.x != ca.x
+
+
 def test_before_any_scored_gap_the_gp_answers():
     obs = drive(60, v0=12.0, a=1.5)
     a, b = HgpPredictor(BANK), HgpPredictor(BANK, HgpConfig(branches=()))

@@ -541,6 +541,21 @@ def test_blend_weights_branches_by_inverse_score_and_drops_the_bad_ones():
         assert min(gp.x, ca.x) <= got.x <= max(gp.x, ca.x) and gp.x != ca.x
 
 
+def test_the_margin_can_differ_by_gap_class():
+    """branch_margin per gap class: the class of one-BSM gaps follows its own margin
+    (CA's score there is ~1/3 of the GP's: margin 1 takes CA, 0.1 keeps the GP); a
+    margin list of the wrong length is refused."""
+    obs = drive(80, v0=12.0, a=1.5, heading0=30.0)
+    for margins, want in (((1.0, 0.1, 0.1, 0.1), 1), ((0.1, 1.0, 1.0, 1.0), 0)):
+        p = HgpPredictor(BANK, HgpConfig(branches=("ca",), branch_margin=margins))
+        for o in obs[:60:2]:
+            p.update(o)
+            p.predict(o.t + 0.1)
+        assert p.branch(0.2) == want
+    with pytest.raises(ValueError, match="one per gap class"):
+        HgpPredictor(BANK, HgpConfig(branch_margin=(1.0, 0.5)))
+
+
 def test_before_any_scored_gap_the_gp_answers():
     obs = drive(60, v0=12.0, a=1.5)
     a, b = HgpPredictor(BANK), HgpPredictor(BANK, HgpConfig(branches=()))

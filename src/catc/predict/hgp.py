@@ -151,10 +151,12 @@ class HgpConfig:
     # above still applies).  Measured (bench/hgp_ablation.py, docs/hgp.md "Branches"):
     # CA and KF with margin 0.5 take 3-14 % off PTE95 at PER 10-50 % on both datasets
     # and add at most 1.7 % at 80-95 %; margin 1 gains more at low PER and loses up to
-    # 5 % at PER 90 %; adding CTRV changed little.
+    # 5 % at PER 90 %; adding CTRV changed little.  Shipped: margin 1 for gaps up to
+    # 0.35 s and 0.5 for longer ones (per class: a float is every class's), chosen by
+    # leave-one-trip-out over both datasets (docs/hgp.md, "A margin per gap class").
     branches: tuple = ("ca", "kf")
     branch_decay: float = 0.8
-    branch_margin: float = 0.5
+    branch_margin: float | tuple = (1.0, 0.5, 0.5, 0.5)  # or one for every gap class
     branch_edges: tuple = (0.35, 1.05, 3.05)
     # Blend instead of switching (> 0): at tau the answer is the mean of the branches'
     # (the GP's too) whose score in tau's class is at most ``branch_blend`` × the best,
@@ -644,6 +646,10 @@ class HgpPredictor(_WindowPredictor):
             raise ValueError(f"reselect_every must be an integer >= 1, got {c.reselect_every!r}")
         if list(c.branch_edges) != sorted(c.branch_edges):
             raise ValueError(f"branch_edges must be ascending, got {c.branch_edges!r}")
+        if not isinstance(c.branch_margin, float) \
+                and len(c.branch_margin) != len(c.branch_edges) + 1:
+            raise ValueError(f"branch_margin: one per gap class ({len(c.branch_edges) + 1}),"
+                             f" got {c.branch_margin!r}")
         try:  # one instance per distinct configuration, for forecast_many's grouping
             self.config = _CONFIGS.setdefault(c, c)
         except TypeError:  # a field given as a list: unhashable, grouped alone
@@ -794,7 +800,8 @@ class HgpPredictor(_WindowPredictor):
         self._score[g] = row
         self._scored[g] += 1
         k = min(range(1, len(row)), key=row.__getitem__)
-        self._choice[g] = k if row[k] < c.branch_margin * row[0] else 0
+        margin = c.branch_margin if isinstance(c.branch_margin, float) else c.branch_margin[g]
+        self._choice[g] = k if row[k] < margin * row[0] else 0
         if c.branch_blend:
             lim = c.branch_blend * max(min(row), 1e-12)
             inv = [max(e, 1e-12) ** -c.blend_power if e <= lim else 0.0 for e in row]

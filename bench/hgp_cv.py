@@ -7,7 +7,7 @@ PTE95); and the leave-one-trip-out score: each trip is scored with whichever var
 the lower pooled PTE95 over all the *other* trips of its dataset, and those errors are
 pooled.  When that score equals B's everywhere, choosing B was not a choice made for one
 file.  The variants are ``bench/hgp_ablation.py``'s (the same seeded loss on every vehicle
-of every trip, ``catc.evaluate.replay_track``).
+of every trip: ``hgp_ablation.trip_errors``).
 
     python bench/hgp_cv.py [--json] [--a br-m0.5] [--b hgp] [--peer ca]
                            [--per 10,30,50,80,90,95] [--workers 2]
@@ -25,34 +25,18 @@ import argparse
 import json
 import sys
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from captures.datasets import load
-from catc.channel import bernoulli_received
-from catc.evaluate import replay_track
-from catc.predict import make_predictor
-from catc.predict.hgp import HgpPredictor
-from hgp_ablation import BASE, DATA, DATASETS, VARIANTS
+from hgp_ablation import DATA, DATASETS, VARIANTS, trip_errors
 
 
 def errors(job: tuple[str, float, str]) -> tuple[str, float, str, dict[str, np.ndarray]]:
-    """Every position error of predictor or variant ``name`` at ``per``, per trip."""
     dataset, per, name = job
-    out = {}
-    for t in load(DATASETS[dataset]):
-        if name in VARIANTS:
-            p = HgpPredictor(config=replace(BASE, **VARIANTS[name][1]))
-        else:
-            p = make_predictor(name)
-        e = np.concatenate([replay_track(tr, p, bernoulli_received(
-            0, f"{t.name}/{tr.vehicle_id}", len(tr), per)) for tr in t.tracks.values()])
-        out[t.name] = e[~np.isnan(e)]
-    return dataset, per, name, out
+    return dataset, per, name, trip_errors(dataset, name, per)
 
 
 def p95(parts) -> float:

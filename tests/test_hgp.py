@@ -543,10 +543,10 @@ def test_blend_weights_branches_by_inverse_score_and_drops_the_bad_ones():
 
 def test_the_margin_can_differ_by_gap_class():
     """branch_margin per gap class: the class of one-BSM gaps follows its own margin
-    (CA's score there is ~1/3 of the GP's: margin 1 takes CA, 0.1 keeps the GP); a
-    margin list of the wrong length is refused."""
+    (CA's score there is ~1/3 of the GP's: margin 1 takes CA, 0.1 keeps the GP); one
+    number, int or float, is every class's; a list of the wrong length is refused."""
     obs = drive(80, v0=12.0, a=1.5, heading0=30.0)
-    for margins, want in (((1.0, 0.1, 0.1, 0.1), 1), ((0.1, 1.0, 1.0, 1.0), 0)):
+    for margins, want in (((1.0, 0.1, 0.1, 0.1), 1), ((0.1, 1.0, 1.0, 1.0), 0), (1, 1)):
         p = HgpPredictor(BANK, HgpConfig(branches=("ca",), branch_margin=margins))
         for o in obs[:60:2]:
             p.update(o)

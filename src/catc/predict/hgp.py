@@ -646,10 +646,14 @@ class HgpPredictor(_WindowPredictor):
             raise ValueError(f"reselect_every must be an integer >= 1, got {c.reselect_every!r}")
         if list(c.branch_edges) != sorted(c.branch_edges):
             raise ValueError(f"branch_edges must be ascending, got {c.branch_edges!r}")
-        if not isinstance(c.branch_margin, float) \
-                and len(c.branch_margin) != len(c.branch_edges) + 1:
-            raise ValueError(f"branch_margin: one per gap class ({len(c.branch_edges) + 1}),"
-                             f" got {c.branch_margin!r}")
+        classes = len(c.branch_edges) + 1
+        if isinstance(c.branch_margin, (int, float)):
+            margins = [float(c.branch_margin)] * classes
+        elif len(c.branch_margin) == classes:
+            margins = [float(m) for m in c.branch_margin]
+        else:
+            raise ValueError(f"branch_margin: one per gap class ({classes}), got "
+                             f"{c.branch_margin!r}")
         try:  # one instance per distinct configuration, for forecast_many's grouping
             self.config = _CONFIGS.setdefault(c, c)
         except TypeError:  # a field given as a list: unhashable, grouped alone
@@ -671,8 +675,10 @@ class HgpPredictor(_WindowPredictor):
         # per gap class: GP, then each kinematic branch
         self._score = [[0.0] * (len(self._kin) + 1) for _ in range(len(c.branch_edges) + 1)]
         self._scored = [0] * (len(c.branch_edges) + 1)
-        # per gap class, the branch that answers (kept up to date by _score_branches)
+        # per gap class, the branch that answers (kept up to date by _score_branches) and
+        # the margin a kinematic branch must beat the GP by
         self._choice = [0] * (len(c.branch_edges) + 1)
+        self._margins = margins
         # per gap class, the blend's weights (branch_blend; None: the GP alone)
         self._weights: list[list[float] | None] = [None] * (len(c.branch_edges) + 1)
         # The window as running arrays: one column per received sample (rows t, speed,
@@ -800,8 +806,7 @@ class HgpPredictor(_WindowPredictor):
         self._score[g] = row
         self._scored[g] += 1
         k = min(range(1, len(row)), key=row.__getitem__)
-        margin = c.branch_margin if isinstance(c.branch_margin, float) else c.branch_margin[g]
-        self._choice[g] = k if row[k] < margin * row[0] else 0
+        self._choice[g] = k if row[k] < self._margins[g] * row[0] else 0
         if c.branch_blend:
             lim = c.branch_blend * max(min(row), 1e-12)
             inv = [max(e, 1e-12) ** -c.blend_power if e <= lim else 0.0 for e in row]

@@ -131,6 +131,7 @@ class Receiver(abc.ABC):
 
     def _start_queue(self) -> None:
         self._queue: asyncio.Queue[Received | None] = asyncio.Queue()
+        self._ended = False  # the end mark (None) is in the queue
 
     def _deliver(self, channel: Literal["rv", "host"], data: bytes) -> None:
         self._queue.put_nowait(Received(channel, data, time.monotonic()))
@@ -156,7 +157,7 @@ class Receiver(abc.ABC):
         :meth:`recv`: in its queue, or (for backends that can tell) still in the kernel's
         socket buffer.  The OBU drains these before a tick: they arrived before the
         host frame that triggers it."""
-        return self._queue.qsize() > int(getattr(self, "_ended", False))  # not the end mark
+        return self._queue.qsize() > self._ended  # the end mark is no frame
 
     @abc.abstractmethod
     async def aclose(self) -> None:

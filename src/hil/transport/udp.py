@@ -221,9 +221,7 @@ class UdpReceiver(Receiver):
         self._closed = True
         for transport in self._transports:
             transport.close()
-        for sock in self._socks.values():
-            sock.close()
-        await asyncio.sleep(0)  # the transports' connection_lost callbacks
+        await asyncio.sleep(0)  # connection_lost: each transport closes its socket
         self._end()
 
 

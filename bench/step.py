@@ -18,7 +18,8 @@ with ``time.perf_counter``.  The BSMs of every tick are built before timing.
                          [--predictors hgp,ca] [--profile N]
 
 Targets (issue 17): p99 at most 25 ms per step at 500 RVs with hgp and 50 ms at 1,000,
-one core.  The process collects garbage as ``obu run`` does (:mod:`hil.gcpolicy`).
+one core.  The process collects garbage as ``obu run`` does (:mod:`hil.gcpolicy`): after
+each step, not inside it; those passes are timed apart and printed under the table.
 """
 
 from __future__ import annotations
@@ -101,11 +102,13 @@ def run(n: int, predictor: str, ticks: int, warmup: int,
     data = scene(n, warmup + ticks)
     # The garbage collection of `obu run` (hil.gcpolicy): what exists now is frozen (the
     # scene's BSMs are the input, not the OBU's state: a daemon holds a tick's worth),
-    # and a full pass runs after a tick once a minute, not timed as a step (reported).
+    # and collections run after the steps, not timed as a step (reported).
     policy = GcPolicy()
     cam = ContextAwareMap(CamConfig(predictor=predictor, origin=ORIGIN), SafetyApps())
     for now, host, msgs in data[:warmup]:
         cam.step(now, host, msgs)
+        policy.after_tick()
+    policy.reset_counters()  # count the timed steps' collections only
     times, fresh, tracked = [], [], []
     prof = cProfile.Profile() if profile else None
     for now, host, msgs in data[warmup:]:
@@ -186,11 +189,12 @@ def main(argv: list[str] | None = None) -> int:
             verdict = "met" if target["step_ms_p99"] <= limit else "NOT met"
             print(f"target: p99 <= {limit:g} ms at {rvs} RVs with {main_p}: {verdict} "
                   f"({target['step_ms_p99']:.1f} ms, {target['step_ms_p99'] / limit:.2f}x)")
-    gcs = [r for r in rows if r["gc_full"]]
-    if gcs:
-        print("full garbage collections after ticks (not in the step times): "
-              + ", ".join(f"{r['rvs']} {r['predictor']}: {r['gc_full']} of max "
-                          f"{r['gc_full_ms_max']:.1f} ms" for r in gcs))
+    # hil.gcpolicy: every collection runs after a tick, outside the step; shown here
+    print("garbage collections after ticks (not in the step times): "
+          + ", ".join(f"{r['rvs']} {r['predictor']}: young {r['gc_young_ms_mean']:.2f} ms "
+                      f"mean, {r['gc_young_ms_max']:.2f} max"
+                      + (f", {r['gc_full']} full of max {r['gc_full_ms_max']:.1f} ms"
+                         if r["gc_full"] else "") for r in rows))
     return 0
 
 

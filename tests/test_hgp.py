@@ -281,7 +281,7 @@ def assert_same_forecast(f, g):
     each land ~2e-11 rad from the exact posterior (checked with mpmath on the worst window
     here); that difference, times speed and time, integrates to ~1e-9 m at 7 s.  So past
     3 s the bound grows with the square of the horizon."""
-    assert f.source == g.source
+    assert tuple(f.source) == tuple(g.source)
     assert np.array_equal(f.tau, g.tau)
     atol = 1e-9 * max(1.0, f.tau[-1] / 3.0) ** 2
     for name in ("x", "y", "speed", "var_x", "var_y"):
@@ -380,13 +380,14 @@ def test_stacked_likelihood_and_posterior_equal_the_readable_formulas():
 def test_plausibility_bound_never_passes_a_switch():
     """The cheap bound on the extremes never calls a forecast plausible that _implausible
     would cut (it only skips work); forecasts built to sit near every threshold."""
-    from catc.predict.hgp import _plausible
+    from catc.predict.hgp import _plausible, _plausible_rows
 
     rng = np.random.default_rng(2)
     p = HgpPredictor(BANK)
     c = p.config
     grid = np.arange(31) * 0.1
     passed = cut = 0
+    rows = []
     for _ in range(3000):
         speed = rng.uniform(0.0, 30.0) + np.cumsum(rng.normal(0, rng.uniform(0.01, 0.3), 31))
         head = np.cumsum(rng.normal(0, rng.uniform(0.0005, 0.015), 31))
@@ -395,11 +396,15 @@ def test_plausibility_bound_never_passes_a_switch():
         ext = [speed.min(), speed.max(), np.abs(np.diff(speed)).max(),
                np.abs(np.diff(head)).max(), vs.max(), vh.max()]
         found = p._implausible(grid, speed, vs, head, vh)
+        rows.append(ext)
         if _plausible(c, *ext):
             passed += 1
             assert found is None
         cut += found is not None
     assert passed > 300 and cut > 300
+    # the stacked form (what _finish_stack uses) says the same of every row
+    ext = np.array(rows)
+    assert _plausible_rows(c, ext).tolist() == [_plausible(c, *r) for r in ext.tolist()]
 
 
 def test_reselection_every_k_samples_and_after_gaps():
@@ -488,6 +493,40 @@ def test_forecast_many_equals_predicting_one_by_one():
     assert made > 1000 and compared > 4000
     assert sum(b.stats["forecasts"] for b in batch) == made
     assert forecast_many(batch, times[-1] + 2.0) == 0  # all cached already
+
+
+def test_predict_columns_are_exactly_the_one_by_one_predictions():
+    """The CA-TC reads every RV's state at now and now + 2 s as columns
+    (catc.predict.predict_columns: forecasts read all at once, branch and BSM answers
+    one by one): the very numbers of predict(), bit for bit, whichever branch answers,
+    beyond the forecast's end too; other predictors in the same call are asked
+    directly."""
+    from catc.predict import make_predictor, predict_columns
+
+    rng = np.random.default_rng(4)
+    tracks = [random_track(rng, 120, per) for per in (0.0, 0.3, 0.5, 0.8, 0.95) * 4]
+    preds = [HgpPredictor() for _ in tracks] + [make_predictor("kf"), make_predictor("ca")]
+    tracks += [tracks[0], tracks[1]]
+    times = sorted({o.t for tr in tracks for o in tr})
+    kinds: set[str] = set()
+    for t in times[5:]:
+        for tr, p in zip(tracks, preds, strict=True):
+            for o in tr:
+                if o.t == t:
+                    p.update(o)
+        live = [p for p in preds if (p._obs if isinstance(p, HgpPredictor) else p._t
+                                     if hasattr(p, "_t") else p._last)]
+        for later in (t + 2.0, t + 4.5):  # 4.5 s: past a 3 s forecast's end
+            cols, sources = predict_columns(live, t, later)
+            for i, p in enumerate(live):
+                a, b = p.predict(t), p.predict(later)
+                np.testing.assert_array_equal(  # NaN (no variance) equals NaN here
+                    cols[:, i], [a.x, b.x, a.y, b.y, a.speed, b.speed, a.heading,
+                                 b.heading, a.var_x, a.var_y])
+                assert sources[i] == a.source
+                kinds.add(a.source)
+                kinds.add(b.source)
+    assert {"bsm", "gp", "ca", "kf"} <= kinds
 
 
 def test_branches_answer_where_their_recent_gaps_were_better():

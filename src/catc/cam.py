@@ -105,7 +105,7 @@ from catc.classify import (
 )
 from catc.geo import EnuFrame
 from catc.pathhistory import ConcisePathHistory, from_bsm_path_history
-from catc.predict import make_predictor, prepare
+from catc.predict import make_predictor, predict_columns, prepare
 from catc.predict.base import Observation, Predictor
 
 __all__ = [
@@ -744,32 +744,30 @@ class ContextAwareMap:
         tracks = [tr for tr in self._tracks.values() if tr.need <= 1]
         n = len(tracks)
         later = now + c.horizon_s
-        prepare([tr.predictor for tr in tracks], later)  # the HGP's forecasts, stacked
-        # One pass over the tracks collects every per-RV value, one row per RV; the rows
-        # become one flat array, column after column (numpy converts a flat list fastest;
-        # filling arrays row by row costs far more), then sliced into the columns.
+        predictors = [tr.predictor for tr in tracks]
+        prepare(predictors, later)  # the HGP's forecasts, stacked
+        # rows x, pred_x, y, pred_y, speed, pred_speed, heading, pred_heading, var_x, var_y
+        values, source = predict_columns(predictors, now, later)
+        (x, pred_x, y, pred_y, speed, pred_speed, heading, pred_heading, var_x,
+         var_y) = values
+        # The rest of the per-RV values, one row per RV; the rows become one flat array,
+        # column after column (numpy converts a flat list fastest; filling arrays row by
+        # row costs far more), then sliced into the columns.
         rows: list[tuple] = []
         flags: list[tuple[bool, bool]] = []  # (fresh, hard braking)
-        source: list[str] = []
-        for tr in tracks:
-            p = tr.predictor.predict(now)
-            q = tr.predictor.predict(later)
+        for tr, ex, ey in zip(tracks, x.tolist(), y.tolist(), strict=True):
             accel, length, width, hard = tr.bsm_values
-            rows.append((p.x, q.x, p.y, q.y, p.speed, q.speed, p.heading, q.heading,
-                         p.var_x, p.var_y, now - tr.t, accel, length, width))
+            rows.append((now - tr.t, accel, length, width))
             flags.append((tr.fresh_at == now, hard))
-            source.append(p.source)
-            tr.est_x, tr.est_y = p.x, p.y
-        values = _flat_columns(rows, np.float64)
-        (x, pred_x, y, pred_y, speed, pred_speed, heading, pred_heading, var_x, var_y, age,
-         accel, length, width) = [values[i * n:(i + 1) * n] for i in range(14)]
+            tr.est_x, tr.est_y = ex, ey
+        age, accel, length, width = _flat_columns(rows, np.float64).reshape(4, n)
         fresh_hard = _flat_columns(flags, np.bool_)
         fresh, hard = fresh_hard[:n], fresh_hard[n:]
         ids = np.array([tr.temp_id for tr in tracks], dtype=np.int64)
         # now and later, x, y and heading: the rows of both paths, each n long
         zone, predicted_zone = classify_paths(
-            (host.path, host.predicted_path), (n, n), values[:2 * n], values[2 * n:4 * n],
-            values[6 * n:8 * n], c.classify)
+            (host.path, host.predicted_path), (n, n), values[0:2].reshape(-1),
+            values[2:4].reshape(-1), values[6:8].reshape(-1), c.classify)
         if c.trail_lanes and n:
             zone, on_trail = self._trail_lanes(tracks, zone, host)
         else:

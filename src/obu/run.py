@@ -534,7 +534,7 @@ async def serve(args: argparse.Namespace) -> dict:
         host_, port_ = args.web
         shown = f"[{host_}]" if ":" in host_ else host_
         print(f"obu: live view at http://{shown}:{port_}/", file=sys.stderr, flush=True)
-    obu.gc = GcPolicy()  # start-up done: freeze it, full passes after ticks only
+    obu.gc = GcPolicy()  # start-up done: freeze it; collections after ticks only
     started = time.monotonic()
     last_status, frames_at_status = started, 0
     collect_s = max(0.0, args.collect_ms) / 1000.0
@@ -577,6 +577,7 @@ async def serve(args: argparse.Namespace) -> dict:
                 break
             now = time.monotonic()
             if now - last_status >= 1.0:
+                obu.gc.idle()  # no ticks for a while: still collect (hil.gcpolicy)
                 fps = (obu.counters["frames"] - frames_at_status) / (now - last_status)
                 obu.frames_per_s = fps
                 last_status, frames_at_status = now, obu.counters["frames"]

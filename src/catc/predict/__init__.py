@@ -113,5 +113,49 @@ def prepare_at(items) -> int:
     return hgp.forecast_many_at(items) + nn.forecast_many_at(items)
 
 
+def predict_columns(predictors, t0: float, t1: float):
+    """Every predictor's state at ``t0`` and at ``t1``, as columns: a (10, n) array whose
+    rows are x, y, speed and heading at t0 and t1 interleaved (x(t0), x(t1), y(t0), ...),
+    then var_x and var_y at t0; and the sources at t0.  The numbers ``predict(t0)`` and
+    ``predict(t1)`` give; forecasts the answers read from (the HGP's, ``plan``) are read
+    all at once (:func:`catc.predict.forecast.read_many`)."""
+    import numpy as np
+
+    from catc.predict.forecast import read_many
+
+    n = len(predictors)
+    out = np.empty((10, n))
+    sources = [""] * n
+    # per time t0, t1: the answers given whole (column, values) and those to read
+    whole: tuple[list, list] = ([], [])
+    reads: tuple[list, list] = ([], [])
+    for i, p in enumerate(predictors):
+        plan = getattr(p, "plan", None)
+        for j, t in ((0, t0), (1, t1)):
+            a = plan(t) if plan is not None else p.predict(t)
+            if a.__class__ is Prediction:
+                whole[j].append((i, a.x, a.y, a.speed, a.heading, a.var_x, a.var_y))
+                if j == 0:
+                    sources[i] = a.source
+            else:
+                reads[j].append((i, a))
+    for j in (0, 1):
+        if whole[j]:
+            rows = np.array(whole[j]).T
+            idx = rows[0].astype(np.intp)
+            out[j:8:2, idx] = rows[1:5]
+            if j == 0:
+                out[8:, idx] = rows[5:]
+        if reads[j]:
+            idx = [i for i, _ in reads[j]]
+            values, src = read_many([a for _, a in reads[j]])
+            out[j:8:2, idx] = values[:4]
+            if j == 0:
+                out[8:, idx] = values[4:]
+                for i, s in zip(idx, src, strict=True):
+                    sources[i] = s
+    return out, sources
+
+
 __all__ = ["NAMES", "STACKED", "Observation", "Prediction", "Predictor", "available",
-           "check", "make_predictor", "prepare", "prepare_at"]
+           "check", "make_predictor", "predict_columns", "prepare", "prepare_at"]

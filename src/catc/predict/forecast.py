@@ -9,6 +9,7 @@ make a forecast once per received BSM, as far ahead as the OBU will ask (its tic
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -25,7 +26,7 @@ class Forecast:
 
     __slots__ = ("end", "source", "table", "tau")
 
-    def __init__(self, tau: np.ndarray, table: np.ndarray, source: list[str]) -> None:
+    def __init__(self, tau: np.ndarray, table: np.ndarray, source: Sequence[str]) -> None:
         self.tau = tau
         self.table = table
         self.source = source
@@ -77,6 +78,46 @@ def read(f: Forecast, tau: float) -> Prediction:
     return Prediction((1 - w) * x0 + w * x1, (1 - w) * y0 + w * y1, (1 - w) * s0 + w * s1,
                       (h0 + w * dh) % 360.0, (1 - w) * vx0 + w * vx1, (1 - w) * vy0 + w * vy1,
                       f.source[k + 1])
+
+
+def read_many(answers: list[tuple[Forecast, float]]) -> tuple[np.ndarray, list[str]]:
+    """:func:`read` of every ``(forecast, tau)`` pair at once: a (6, N) array, rows x, y,
+    speed, heading, var_x, var_y, and the sources.  The same arithmetic as :func:`read`,
+    element by element, so the same numbers; one Python step per pair instead of a
+    :class:`Prediction` (the OBU reads ~700 forecasts a tick at 500 RVs)."""
+    n = len(answers)
+    out = np.empty((6, n))
+    if not n:
+        return out, []
+    pairs, ws, sources, far = [], [], [], []
+    for i, (f, tau) in enumerate(answers):
+        source = f.source
+        if tau >= f.end:  # beyond the horizon: read below, one by one (rare)
+            far.append(i)
+            k, w = len(source) - 2, 1.0
+        else:
+            k = min(int(tau / DT), len(source) - 2)
+            w = min(tau / DT - k, 1.0)
+        pairs.append(f.table[:, k:k + 2])
+        ws.append(w)
+        sources.append(source[k + 1])
+    both = np.concatenate(pairs, axis=1)  # (6, 2N): each pair's step k, then k + 1
+    lo, hi = both[:, 0::2], both[:, 1::2]
+    w = np.array(ws)
+    np.multiply(1.0 - w, lo, out=out)
+    out += w * hi
+    dh = np.subtract(hi[3], lo[3])
+    dh += 180.0
+    np.remainder(dh, 360.0, out=dh)
+    dh -= 180.0
+    dh *= w
+    np.add(lo[3], dh, out=out[3])
+    np.remainder(out[3], 360.0, out=out[3])
+    for i in far:
+        p = read(*answers[i])
+        out[:, i] = (p.x, p.y, p.speed, p.heading, p.var_x, p.var_y)
+        sources[i] = p.source
+    return out, sources
 
 
 def bsm_prediction(last: Observation) -> Prediction:

@@ -405,8 +405,9 @@ def _window_exps(tau: np.ndarray, coef: np.ndarray, name: str) -> np.ndarray:
     bsz, n = tau.shape
     rows, cols = _tril(n)
     lhs = _scratch("lhs", (bsz, len(rows), 2))
-    d2 = np.subtract(np.take(tau, rows, axis=1, out=_scratch("rows", (bsz, len(rows)))),
-                     np.take(tau, cols, axis=1, out=_scratch("cols", (bsz, len(rows)))),
+    # (ndarray.take, not np.take: the latter's Python wrapper was 3 % of an OBU tick)
+    d2 = np.subtract(tau.take(rows, axis=1, out=_scratch("rows", (bsz, len(rows)))),
+                     tau.take(cols, axis=1, out=_scratch("cols", (bsz, len(rows)))),
                      out=lhs[:, :, 0])
     np.multiply(d2, d2, out=d2)
     lhs[:, :, 1] = 1.0
@@ -475,6 +476,32 @@ def _plausible(c: HgpConfig, lo: float, hi: float, ds: float, dh: float, vs: flo
             and math.degrees(math.sqrt(vh)) <= c.heading_std_max)
 
 
+def _plausible_rows(c: HgpConfig, ext: np.ndarray) -> np.ndarray:
+    """:func:`_plausible` of every row of ``ext`` (B, 6) at once: the same operations on
+    the same numbers (np.degrees and np.radians multiply by the constants math's do)."""
+    lo, hi, ds, dh, vs, vh = ext.T
+    yaw = np.degrees(dh) / DT
+    ok = lo >= 0.0
+    ok &= ds / DT <= c.accel_max
+    ok &= yaw <= c.yaw_rate_max
+    ok &= hi * np.radians(yaw) <= c.lat_accel_max
+    ok &= np.sqrt(vs) <= c.speed_std_max
+    ok &= np.degrees(np.sqrt(vh)) <= c.heading_std_max
+    return ok
+
+
+_ALL_GP: dict[int, tuple[str, ...]] = {}
+
+
+def _all_gp(count: int) -> tuple[str, ...]:
+    """The sources of a forecast of ``count`` points that is the GP's throughout (shared:
+    forecasts' sources are never changed in place)."""
+    src = _ALL_GP.get(count)
+    if src is None:
+        src = _ALL_GP[count] = ("gp",) * count
+    return src
+
+
 def _finish_stack(preds: list, mean: np.ndarray, var: np.ndarray, start: np.ndarray,
                   grid: np.ndarray) -> list[Forecast]:
     """Switching, integration and position variance for B forecasts of one configuration:
@@ -492,22 +519,20 @@ def _finish_stack(preds: list, mean: np.ndarray, var: np.ndarray, start: np.ndar
     speed.max(axis=1, out=ext[:, 1])
     np.abs(np.diff(mean, axis=2)).max(axis=2, out=ext[:, 2:4])
     var.max(axis=2, out=ext[:, 4:6])
-    sources = []
-    for i, row in enumerate(ext.tolist()):
-        source = ["gp"] * count
-        if not _plausible(c, *row):
-            p = preds[i]
-            cut = p._implausible(grid, speed[i], vs[i], head[i], vh[i])
-            if cut is not None:
-                stop = bool(speed[i, cut] < 0)
-                p.stats["switch_ca" if stop else "switch_cs"] += 1
-                keep = max(cut - 1, 0)
-                speed[i, cut:] = 0.0 if stop else max(speed[i, keep], 0.0)
-                head[i, cut:] = head[i, keep]
-                vs[i, cut:] = vs[i, keep]
-                vh[i, cut:] = vh[i, keep]
-                source[cut:] = ["ca" if stop else "cs"] * (count - cut)
-        sources.append(source)
+    all_gp = _all_gp(count)
+    sources = [all_gp] * bsz
+    for i in np.flatnonzero(~_plausible_rows(c, ext)).tolist():
+        p = preds[i]
+        cut = p._implausible(grid, speed[i], vs[i], head[i], vh[i])
+        if cut is not None:
+            stop = bool(speed[i, cut] < 0)
+            p.stats["switch_ca" if stop else "switch_cs"] += 1
+            keep = max(cut - 1, 0)
+            speed[i, cut:] = 0.0 if stop else max(speed[i, keep], 0.0)
+            head[i, cut:] = head[i, keep]
+            vs[i, cut:] = vs[i, keep]
+            vh[i, cut:] = vh[i, keep]
+            sources[i] = all_gp[:cut] + ("ca" if stop else "cs",) * (count - cut)
     sc = np.empty((bsz, 2, count))  # sin h, cos h
     np.sin(head, out=sc[:, 0])
     np.cos(head, out=sc[:, 1])
@@ -741,6 +766,13 @@ class HgpPredictor(_WindowPredictor):
         self._since_selection += 1
 
     def predict(self, t: float) -> Prediction:
+        answer = self.plan(t)
+        return answer if answer.__class__ is Prediction else read(*answer)
+
+    def plan(self, t: float) -> Prediction | tuple[Forecast, float]:
+        """What :meth:`predict` answers at ``t``: the Prediction, or ``(forecast, tau)``
+        when the answer is the GP forecast read ``tau`` s after the last BSM (for
+        :func:`catc.predict.predict_columns`, which reads many at once)."""
         last, tau = self._since_last(t)
         if tau == 0.0:
             return bsm_prediction(last)
@@ -760,7 +792,7 @@ class HgpPredictor(_WindowPredictor):
                 branch = self._choice[g]
                 if branch:  # the GP's forecast is still made: it is scored at the next BSM
                     return self._kin[branch - 1].predict(t)
-        return read(f, tau)
+        return f, tau
 
     def _blend(self, t: float, gp: Prediction, w: list[float]) -> Prediction:
         """The branches' answers at ``t`` averaged with weights ``w`` (GP first); heading
@@ -853,8 +885,13 @@ class HgpPredictor(_WindowPredictor):
             rel[2, n] = math.radians(last.yaw_rate)
         else:
             rel[1:, n] = 0.0
-        regular = self._run >= n == c.tw and not self._online_speed
-        return rel, self._regular_cache(rel[0, :n]) if regular else None
+        return rel, self._cache_for(rel)
+
+    def _cache_for(self, rel: np.ndarray) -> tuple[RegularSlopeBank, ...] | None:
+        """The regular-grid selection cache for the prepared window ``rel``, or None."""
+        n = rel.shape[1] - 1
+        regular = self._run >= n == self.config.tw and not self._online_speed
+        return self._regular_cache(rel[0, :n]) if regular else None
 
     def _regular_cache(self, tau: np.ndarray) -> tuple[RegularSlopeBank, ...] | None:
         """The cached selection for a window of ``tw`` samples at exactly DT apart (no loss),
@@ -1037,6 +1074,12 @@ _SELECT_CHUNK = 16
 _POSTERIOR_CHUNK = 64
 
 
+def _stack(arrays: list[np.ndarray]) -> np.ndarray:
+    """``np.stack(arrays)`` for arrays of one shape, a third of its cost (no per-array
+    ``expand_dims``)."""
+    return np.concatenate(arrays).reshape(len(arrays), *arrays[0].shape)
+
+
 def _select_batch(preds: list[HgpPredictor], rels: list[np.ndarray],
                   caches: list[tuple[RegularSlopeBank, ...] | None]) -> None:
     """Select bank models for these predictors: the same choice as
@@ -1058,7 +1101,7 @@ def _select_batch(preds: list[HgpPredictor], rels: list[np.ndarray],
         m = shared.m
         for lo in range(0, len(items), _SELECT_CHUNK):
             chunk = items[lo:lo + _SELECT_CHUNK]
-            rels = chunk[0][1][None] if len(chunk) == 1 else np.stack([r for _, r in chunk])
+            rels = _stack([r for _, r in chunk])
             lml = _lml_stack(rels[:, 0, :-1], rels[:, 1:], shared.consts, m, shared.thetas)
             best_s = np.argmax(lml[:, :m], axis=1).tolist()
             best_h = np.argmax(lml[:, m:], axis=1).tolist()
@@ -1067,13 +1110,41 @@ def _select_batch(preds: list[HgpPredictor], rels: list[np.ndarray],
                                           shared.pair(i, j))
 
 
+def _prepare_many(preds: list[HgpPredictor]) -> list[tuple]:
+    """:meth:`HgpPredictor._prepare` of each predictor; full windows (``tw`` samples, no
+    time cap: nearly all of them) in one stacked subtraction, the same numbers."""
+    c = preds[0].config
+    out: list = [None] * len(preds)
+    full, wins = [], []
+    if c.slopes and math.isinf(c.window_s):
+        for i, p in enumerate(preds):
+            if p._hi - p._lo == c.tw:
+                full.append(i)
+                wins.append(p._buf[:3, p._lo:p._hi])
+    if len(full) > 1:
+        win = _stack(wins)
+        n = c.tw
+        rel = np.empty((len(full), 3, n + 1))
+        np.subtract(win, win[:, :, -1:], out=rel[:, :, :n])
+        rel[:, 0, n] = 0.0
+        last = [preds[i]._obs[-1] for i in full]
+        rel[:, 1, n] = [o.accel for o in last]
+        rel[:, 2, n] = [math.radians(o.yaw_rate) for o in last]
+        for i, r in zip(full, rel, strict=True):
+            out[i] = (r, preds[i]._cache_for(r))
+    for i, p in enumerate(preds):
+        if out[i] is None:
+            out[i] = p._prepare()
+    return out
+
+
 def _forecast_batch(preds: list[HgpPredictor], counts: list[int]) -> list[Forecast]:
     """Forecasts of ``counts[i]`` points for each predictor (all on one bank and
     configuration), computed stacked; what :meth:`HgpPredictor._make_forecast_reference`
     computes, to round-off, with the selection renewed as ``reselect_every`` and
     ``reselect_gap_s`` say."""
     c = preds[0].config
-    prepared = [p._prepare() for p in preds]
+    prepared = _prepare_many(preds)
     stale = []
     for i, p in enumerate(preds):
         p.stats["forecasts"] += 1
@@ -1099,9 +1170,7 @@ def _forecast_batch(preds: list[HgpPredictor], counts: list[int]) -> list[Foreca
         if len(direct) == len(members) <= _POSTERIOR_CHUNK:  # the usual case: one call
             rels = [prepared[i][0] for i in members]
             consts = [preds[i]._selection.consts for i in members]
-            mean, var = _posterior_stack(rels[0][None] if len(rels) == 1 else np.stack(rels),
-                                         grid, consts[0][None] if len(consts) == 1
-                                         else np.stack(consts))
+            mean, var = _posterior_stack(_stack(rels), grid, _stack(consts))
         else:
             mean = np.empty((len(members), 2, count))
             var = np.empty((len(members), 2, count))
@@ -1121,8 +1190,8 @@ def _forecast_batch(preds: list[HgpPredictor], counts: list[int]) -> list[Foreca
                 rows = direct[lo:lo + _POSTERIOR_CHUNK]
                 chunk = [members[r] for r in rows]
                 mean[rows], var[rows] = _posterior_stack(
-                    np.stack([prepared[i][0] for i in chunk]), grid,
-                    np.stack([preds[i]._selection.consts for i in chunk]))
+                    _stack([prepared[i][0] for i in chunk]), grid,
+                    _stack([preds[i]._selection.consts for i in chunk]))
         if c.slopes and c.speed_model == "ca":  # diagnostics: kinematic speed or heading
             for row, i in enumerate(members):
                 mean[row, 0], var[row, 0] = prepared[i][0][1, -1] * grid, 0.0

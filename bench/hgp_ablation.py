@@ -87,6 +87,8 @@ VARIANTS: dict[str, tuple[str, dict, str]] = {
                    {"branch_margin": (1.0, 0.75, 0.5, 0.5)}, "default"),
     "br-d0.5": ("branches CA and KF, score decay 0.5",
                 {"branches": ("ca", "kf"), "branch_decay": 0.5}, "default"),
+    "br-d0.9": ("branches CA and KF, score decay 0.9",
+                {"branches": ("ca", "kf"), "branch_decay": 0.9}, "default"),
     "br-d0.95": ("branches CA and KF, score decay 0.95",
                  {"branches": ("ca", "kf"), "branch_decay": 0.95}, "default"),
     "br-m0.5": ("branches CA and KF, a kinematic branch only at half the GP's score",

@@ -527,6 +527,13 @@ def test_predict_columns_are_exactly_the_one_by_one_predictions():
                 kinds.add(a.source)
                 kinds.add(b.source)
     assert {"bsm", "gp", "ca", "kf"} <= kinds
+    # the branch score's reader: read()'s position, to the bit, within and beyond the end
+    from catc.predict.forecast import read, read_xy
+
+    f = next(p._forecast for p in preds if getattr(p, "_forecast", None) is not None)
+    for tau in np.linspace(0.0, f.end + 1.5, 97).tolist():
+        r = read(f, tau)
+        assert read_xy(f, tau) == (r.x, r.y)
 
 
 def test_branches_answer_where_their_recent_gaps_were_better():

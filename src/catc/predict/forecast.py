@@ -80,6 +80,20 @@ def read(f: Forecast, tau: float) -> Prediction:
                       f.source[k + 1])
 
 
+def read_xy(f: Forecast, tau: float) -> tuple[float, float]:
+    """The position of :func:`read` (the same arithmetic), without the rest: a branch
+    score needs only where the GP put the vehicle at the gap's end."""
+    if tau >= f.end:
+        x, y, speed, heading = f.table[:4, -1].tolist()
+        extra = tau - f.end
+        h = math.radians(heading)
+        return x + speed * extra * math.sin(h), y + speed * extra * math.cos(h)
+    k = min(int(tau / DT), len(f.source) - 2)
+    w = min(tau / DT - k, 1.0)
+    (x0, x1), (y0, y1) = f.table[:2, k:k + 2].tolist()
+    return (1 - w) * x0 + w * x1, (1 - w) * y0 + w * y1
+
+
 def read_many(answers: list[tuple[Forecast, float]]) -> tuple[np.ndarray, list[str]]:
     """:func:`read` of every ``(forecast, tau)`` pair at once: a (6, N) array, rows x, y,
     speed, heading, var_x, var_y, and the sources.  The same arithmetic as :func:`read`,

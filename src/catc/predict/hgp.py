@@ -91,6 +91,7 @@ from catc.predict.forecast import (
     covers,
     integrate,
     read,
+    read_xy,
 )
 from catc.predict.kinematic import elapsed
 
@@ -825,9 +826,9 @@ class HgpPredictor(_WindowPredictor):
         f = self._forecast
         if f is None or not covers(f, gap, self.config.horizon_s):
             return
-        g = read(f, gap)
+        gx, gy = read_xy(f, gap)
         x, y = obs.x, obs.y
-        errs = [(g.x - x) ** 2 + (g.y - y) ** 2]
+        errs = [(gx - x) ** 2 + (gy - y) ** 2]
         for k in self._kin:
             p = k.predict(obs.t)
             errs.append((p.x - x) ** 2 + (p.y - y) ** 2)
@@ -1224,12 +1225,14 @@ def forecast_many_at(items: Iterable[tuple[object, float]]) -> int:
     for p, t in items:
         if not isinstance(p, HgpPredictor) or not p._obs:
             continue
-        c = p.config
         tau = t - p._obs[-1].t
-        if not tau > 0.0 or p._window_len() < c.min_points:
+        if not tau > 0.0:
             continue
-        f = p._forecast
-        if f is not None and covers(f, tau, c.horizon_s):
+        c = p.config
+        f = p._forecast  # most are still covered: asked first, covers() inlined
+        if f is not None and f.end >= min(tau, c.horizon_s) - 1e-9:
+            continue
+        if p._window_len() < c.min_points:
             continue
         groups.setdefault((id(c), id(p._shared)), []).append((p, _steps(max(tau, 3.0), c)))
     for group in groups.values():

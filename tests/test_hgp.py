@@ -501,7 +501,7 @@ def test_predict_columns_are_exactly_the_one_by_one_predictions():
     one by one): the very numbers of predict(), bit for bit, whichever branch answers,
     beyond the forecast's end too; other predictors in the same call are asked
     directly."""
-    from catc.predict import make_predictor, predict_columns
+    from catc.predict import make_predictor, predict_columns, prepare
 
     rng = np.random.default_rng(4)
     tracks = [random_track(rng, 120, per) for per in (0.0, 0.3, 0.5, 0.8, 0.95) * 4]
@@ -517,6 +517,8 @@ def test_predict_columns_are_exactly_the_one_by_one_predictions():
         live = [p for p in preds if (p._obs if isinstance(p, HgpPredictor) else p._t
                                      if hasattr(p, "_t") else p._last)]
         for later in (t + 2.0, t + 4.5):  # 4.5 s: past a 3 s forecast's end
+            if later == t + 2.0:
+                prepare(live, later)  # as the CA-TC does: then no call makes a forecast
             cols, sources = predict_columns(live, t, later)
             for i, p in enumerate(live):
                 a, b = p.predict(t), p.predict(later)
@@ -558,6 +560,13 @@ def test_branches_answer_where_their_recent_gaps_were_better():
     assert p._score[0][0] > 2.0 * p._score[0][1]  # squared errors (GP 0.4 mm, CA 0.15 mm)
     p.reset()
     assert p.branch(0.2) == 0 and not any(p._scored)
+    # a branch without position() (the IMM) is scored by its predict()'s x and y
+    p = HgpPredictor(BANK, HgpConfig(branches=("imm", "ca"), branch_margin=1.0))
+    assert not hasattr(p._kin[0], "position")
+    for o in obs[:60:2]:
+        p.update(o)
+        p.predict(o.t + 0.1)
+    assert p._scored[0] > 20 and p._score[0][1] > 0.0 and p.branch(0.2) in (1, 2)
 
 
 def test_blend_weights_branches_by_inverse_score_and_drops_the_bad_ones():

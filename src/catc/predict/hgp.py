@@ -74,7 +74,7 @@ import math
 import threading
 import weakref
 from collections import deque
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -698,6 +698,9 @@ class HgpPredictor(_WindowPredictor):
             self._kin = [make_predictor(name) for name in c.branches]
         else:
             self._kin = []
+        # where each branch puts the vehicle at t, for its score (position() where a
+        # predictor has it: the x, y of predict() without the rest)
+        self._kin_xy = [getattr(k, "position", None) or _position_of(k) for k in self._kin]
         # per gap class: GP, then each kinematic branch
         self._score = [[0.0] * (len(self._kin) + 1) for _ in range(len(c.branch_edges) + 1)]
         self._scored = [0] * (len(c.branch_edges) + 1)
@@ -795,6 +798,30 @@ class HgpPredictor(_WindowPredictor):
                     return self._kin[branch - 1].predict(t)
         return f, tau
 
+    def plan_pair(self, t0: float, t1: float) -> tuple:
+        """``(plan(t0), plan(t1))``, the very answers of the two calls (t0 ≤ t1), in one:
+        the CA-TC asks every RV at now and at now + 2 s, after its forecasts were made
+        (then neither call makes one, and this shares their lookups)."""
+        obs, f = self._obs, self._forecast
+        if not obs or f is None or not t0 <= t1:
+            return self.plan(t0), self.plan(t1)
+        last = obs[-1]
+        tau0, tau1 = elapsed(last.t, t0), elapsed(last.t, t1)
+        c = self.config
+        if ((len(obs) if self._uncapped else self._window_len()) < c.min_points
+                or f.end < min(tau1, c.horizon_s) - 1e-9 or c.branch_blend):
+            return self.plan(t0), self.plan(t1)  # a forecast to make, a blend, or CA
+        kin = self._kin
+        if tau0 == 0.0:
+            a0 = bsm_prediction(last)
+        else:
+            b = self._choice[bisect.bisect_left(c.branch_edges, tau0)] if kin else 0
+            a0 = kin[b - 1].predict(t0) if b else (f, tau0)
+        if tau1 == 0.0:
+            return a0, bsm_prediction(last)
+        b = self._choice[bisect.bisect_left(c.branch_edges, tau1)] if kin else 0
+        return a0, kin[b - 1].predict(t1) if b else (f, tau1)
+
     def _blend(self, t: float, gp: Prediction, w: list[float]) -> Prediction:
         """The branches' answers at ``t`` averaged with weights ``w`` (GP first); heading
         by its differences from the GP's, variances the GP's."""
@@ -829,9 +856,9 @@ class HgpPredictor(_WindowPredictor):
         gx, gy = read_xy(f, gap)
         x, y = obs.x, obs.y
         errs = [(gx - x) ** 2 + (gy - y) ** 2]
-        for k in self._kin:
-            p = k.predict(obs.t)
-            errs.append((p.x - x) ** 2 + (p.y - y) ** 2)
+        for position in self._kin_xy:
+            px, py = position(obs.t)
+            errs.append((px - x) ** 2 + (py - y) ** 2)
         c = self.config
         d = c.branch_decay
         g = bisect.bisect_left(c.branch_edges, gap)
@@ -1073,6 +1100,14 @@ class HgpPredictor(_WindowPredictor):
 #: 120 kB per window, a posterior's 23 kB).
 _SELECT_CHUNK = 16
 _POSTERIOR_CHUNK = 64
+
+
+def _position_of(predictor) -> Callable[[float], tuple[float, float]]:
+    """(x, y) of ``predictor.predict(t)``, for a branch without a ``position`` method."""
+    def position(t: float) -> tuple[float, float]:
+        p = predictor.predict(t)
+        return p.x, p.y
+    return position
 
 
 def _stack(arrays: list[np.ndarray]) -> np.ndarray:

@@ -195,6 +195,20 @@ class KalmanPredictor:
         return Prediction(x, y, speed, wrap_heading(heading), var, var, self.name)
 
 
+    def position(self, t: float) -> tuple[float, float]:
+        """``predict(t)``'s (x, y) alone, the same arithmetic: what a branch score needs."""
+        if self._t is None:
+            raise LookupError("no observation yet")
+        dt = elapsed(self._t, t)
+        pe, ve, ae = self._east
+        pn, vn, an = self._north
+        stop = stop_point(pe, ve, ae, pn, vn, an, self._heading, dt)
+        if stop is not None:
+            return stop[0] + self._anchor[0], stop[1] + self._anchor[1]
+        h2 = 0.5 * dt * dt
+        return pe + dt * ve + h2 * ae + self._anchor[0], pn + dt * vn + h2 * an + self._anchor[1]
+
+
 def stop_point(pe: float, ve: float, ae: float, pn: float, vn: float, an: float,
                heading_deg: float, dt: float) -> tuple[float, float] | None:
     """The stop rule of a constant-acceleration state (position, velocity, acceleration

@@ -84,6 +84,11 @@ class _FromLastObservation(ABC):
             raise LookupError("no observation yet")
         return self._extrapolate(self._last, elapsed(self._last.t, t))
 
+    def position(self, t: float) -> tuple[float, float]:
+        """``predict(t)``'s (x, y): what a branch score needs (subclasses may skip the rest)."""
+        p = self.predict(t)
+        return p.x, p.y
+
     def reset(self) -> None:
         """Forget the last observation."""
         self._last = None
@@ -142,6 +147,17 @@ class ConstantAccelerationPredictor(_FromLastObservation):
         if a < 0.0 and dt >= s / -a:
             return along_heading(obs, s * s / (-2.0 * a), 0.0, self.name)
         return along_heading(obs, s * dt + 0.5 * a * dt * dt, s + a * dt, self.name)
+
+    def position(self, t: float) -> tuple[float, float]:
+        """``predict(t)``'s (x, y) alone (the same arithmetic as :func:`along_heading`)."""
+        obs = self._last
+        if obs is None:
+            raise LookupError("no observation yet")
+        dt = elapsed(obs.t, t)
+        s, a = obs.speed, obs.accel
+        d = s * s / (-2.0 * a) if a < 0.0 and dt >= s / -a else s * dt + 0.5 * a * dt * dt
+        h = math.radians(obs.heading)
+        return obs.x + d * math.sin(h), obs.y + d * math.cos(h)
 
 
 class CtrvPredictor(_FromLastObservation):

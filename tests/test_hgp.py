@@ -638,3 +638,80 @@ def test_kernel_bench_agrees_with_lapack():
     assert res["posteriors"]["kernel"]["max_diff"] < 1e-8
     assert all(r["ms"] > 0 for key in ("selections", "posteriors")
                for r in res[key].values() if isinstance(r, dict))
+
+
+def test_compiled_row_passes_are_the_numpy_reductions():
+    """gpkernels.shift_rows (the first pass of _finish_stack) against the numpy it
+    replaced: the shifted means, the clipped variances and the extremes bit for bit,
+    NaN where numpy's reductions give NaN (such a row is never plausible)."""
+    from catc.predict import gpkernels
+    from catc.predict.hgp import _plausible_rows
+
+    rng = np.random.default_rng(8)
+    mean = rng.normal(0, 3, (40, 2, 31))
+    var = rng.normal(0.1, 0.2, (40, 2, 31))  # some negative: clipped to 0
+    start = rng.normal(0, 10, (40, 4))
+    mean[3, 0, 7] = np.nan
+    var[5, 1, 2] = np.nan
+    m, v = mean + start[:, :2, None], np.maximum(var, 0.0)
+    want = np.empty((40, 6))
+    want[:, 0], want[:, 1] = m[:, 0].min(axis=1), m[:, 0].max(axis=1)
+    want[:, 2:4] = np.abs(np.diff(m, axis=2)).max(axis=2)
+    want[:, 4:6] = v.max(axis=2)
+    ext = np.empty((40, 6))
+    gpkernels.shift_rows(mean, var, start, ext)
+    np.testing.assert_array_equal(mean, m)
+    np.testing.assert_array_equal(var, v)
+    ok = ~np.isnan(want).any(axis=1)
+    np.testing.assert_array_equal(ext[ok], want[ok])
+    assert np.isnan(ext[3]).any() and np.isnan(ext[5]).any()
+    c = HgpConfig()
+    assert _plausible_rows(c, ext).tolist() == _plausible_rows(c, want).tolist()
+    assert not _plausible_rows(c, ext)[[3, 5]].any()
+
+
+@pytest.mark.parametrize("rule", ["trapezoid", "left"])
+def test_compiled_integration_is_the_numpy_one(rule):
+    """gpkernels.integrate_rows (positions and position variances of _finish_stack) is the
+    numpy arithmetic it replaced, bit for bit: rates, trapezoid or left rule, one
+    cumulative sum per quantity, heading in degrees wrapped to [0, 360)."""
+    from catc.predict import gpkernels
+    from catc.predict.forecast import DT
+    from catc.predict.hgp import _grid
+
+    rng = np.random.default_rng(11)
+    bsz, count = 30, 31
+    _, dgrid, half = _grid(count)
+    mean = np.stack([rng.uniform(0, 30, (bsz, count)),
+                     rng.normal(0, 4, (bsz, count))], axis=1)  # headings of any sign
+    var = rng.uniform(0, 0.3, (bsz, 2, count))
+    start = rng.normal(0, 100, (bsz, 4))
+    speed, head, vs, vh = mean[:, 0], mean[:, 1], var[:, 0], var[:, 1]
+    sc = np.stack([np.sin(head), np.cos(head)], axis=1)
+    eff = speed * np.exp(-0.5 * vh)
+    # the numpy passes (what _finish_stack did)
+    rate = np.empty((bsz, 4, count))
+    np.multiply(eff[:, None], sc, out=rate[:, :2])
+    rate[:, 2] = vs
+    np.multiply(vh, speed * speed, out=rate[:, 3])
+    seg = np.empty((bsz, 4, count - 1))
+    if rule == "trapezoid":
+        np.add(rate[:, :2, 1:], rate[:, :2, :-1], out=seg[:, :2])
+        seg[:, :2] *= half
+    else:
+        np.multiply(rate[:, :2, :-1], dgrid, out=seg[:, :2])
+    np.multiply(rate[:, 2:, 1:], DT * DT, out=seg[:, 2:])
+    acc = np.empty((bsz, 4, count))
+    acc[..., 0] = 0.0
+    np.cumsum(seg, axis=2, out=acc[..., 1:])
+    want = np.empty((bsz, 6, count))
+    np.add(acc[:, :2], start[:, 2:, None], out=want[:, :2])
+    want[:, 2] = speed
+    np.remainder(np.degrees(head), 360.0, out=want[:, 3])
+    sq = sc * sc
+    np.multiply(sq, acc[:, 2:3], out=want[:, 4:6])
+    want[:, 4:6] += acc[:, 3:4] * sq[:, ::-1]
+    got = np.empty((bsz, 6, count))
+    gpkernels.integrate_rows(eff, sc, mean, var, start, dgrid, half, rule == "trapezoid",
+                             DT * DT, got)
+    np.testing.assert_array_equal(got, want)

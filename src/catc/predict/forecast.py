@@ -26,11 +26,12 @@ class Forecast:
 
     __slots__ = ("end", "source", "table", "tau")
 
-    def __init__(self, tau: np.ndarray, table: np.ndarray, source: Sequence[str]) -> None:
+    def __init__(self, tau: np.ndarray, table: np.ndarray, source: Sequence[str],
+                 end: float | None = None) -> None:
         self.tau = tau
         self.table = table
         self.source = source
-        self.end = float(tau[-1])  # the horizon, s
+        self.end = float(tau[-1]) if end is None else end  # the horizon, s
 
     x = property(lambda self: self.table[0])
     y = property(lambda self: self.table[1])

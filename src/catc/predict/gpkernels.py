@@ -248,3 +248,101 @@ def posterior(e, rel, grid, p, mean, var, a):  # pragma: no cover - compiled
                     for s in range(nb):
                         x = cur[i, s] * u[s] * step[i, s]
                         cur[i, s] = x if x >= 1e-290 else 0.0
+
+
+_RAD2DEG = 180.0 / math.pi  # numpy's degrees() multiplies by this same constant
+
+
+@njit(**_OPTS)
+def integrate_rows(eff, sc, mean, var, start, dgrid, half, trapezoid, dt2,
+                   table):  # pragma: no cover - compiled
+    """The positions and position variances of B forecasts in one pass per row
+    (catc.predict.hgp._finish_stack): what twenty numpy passes over the rows computed,
+    with the same operations in the same order.  ``eff`` (B, G) the speed times the
+    heading damping (or the speed), ``sc`` (B, 2, G) sin and cos of the heading, ``mean``
+    and ``var`` (B, 2, G) speed and heading (rad) and their variances, ``start`` (B, 4)
+    the last speed, heading, x and y; ``dgrid`` and ``half`` the grid steps and their
+    halves; ``trapezoid`` the rule (else left Riemann); ``dt2`` Δt²; ``table`` (B, 6, G)
+    out: x, y, speed, heading (deg, [0, 360)), var_x, var_y."""
+    bsz, _, count = mean.shape
+    for i in range(bsz):
+        x0 = start[i, 2]
+        y0 = start[i, 3]
+        ae = an = av = ac = 0.0
+        pe = pn = 0.0
+        for j in range(count):
+            speed = mean[i, 0, j]
+            re = eff[i, j] * sc[i, 0, j]
+            rn = eff[i, j] * sc[i, 1, j]
+            if j > 0:
+                if trapezoid:
+                    se = (re + pe) * half[j - 1]
+                    sn = (rn + pn) * half[j - 1]
+                else:
+                    se = pe * dgrid[j - 1]
+                    sn = pn * dgrid[j - 1]
+                sv = var[i, 0, j] * dt2
+                sx = var[i, 1, j] * (speed * speed) * dt2
+                if j == 1:  # a cumulative sum starts at its first term (not 0 + it)
+                    ae, an, av, ac = se, sn, sv, sx
+                else:
+                    ae += se
+                    an += sn
+                    av += sv
+                    ac += sx
+            pe, pn = re, rn
+            table[i, 0, j] = ae + x0
+            table[i, 1, j] = an + y0
+            table[i, 2, j] = speed
+            table[i, 3, j] = (mean[i, 1, j] * _RAD2DEG) % 360.0
+            s2 = sc[i, 0, j] * sc[i, 0, j]
+            c2 = sc[i, 1, j] * sc[i, 1, j]
+            table[i, 4, j] = s2 * av + ac * c2
+            table[i, 5, j] = c2 * av + ac * s2
+
+
+@njit(**_OPTS)
+def shift_rows(mean, var, start, ext):  # pragma: no cover - compiled
+    """For B forecasts (catc.predict.hgp._finish_stack): add the last speed and heading
+    ``start[:, :2]`` to the relative means (B, 2, G), clip negative variances to 0 (NaN
+    stays NaN, as numpy's maximum leaves it), and write each row's extremes to ``ext``
+    (B, 6): least and greatest speed, greatest step change of speed and of heading,
+    greatest speed and heading variance (NaN where numpy's reductions give NaN)."""
+    bsz, _, count = mean.shape
+    nan = np.nan
+    for i in range(bsz):
+        for c in range(2):
+            s = start[i, c]
+            prev = 0.0
+            step = 0.0
+            vmax = -np.inf
+            lo = np.inf
+            hi = -np.inf
+            bad = False
+            for j in range(count):
+                m = mean[i, c, j] + s
+                mean[i, c, j] = m
+                v = var[i, c, j]
+                if v < 0.0:
+                    v = 0.0
+                    var[i, c, j] = v
+                if m != m or v != v:
+                    bad = True
+                if j > 0:
+                    d = abs(m - prev)
+                    if d > step:
+                        step = d
+                if v > vmax:
+                    vmax = v
+                if m < lo:
+                    lo = m
+                if m > hi:
+                    hi = m
+                prev = m
+            if bad:
+                step = vmax = lo = hi = nan
+            if c == 0:
+                ext[i, 0] = lo
+                ext[i, 1] = hi
+            ext[i, 2 + c] = step
+            ext[i, 4 + c] = vmax

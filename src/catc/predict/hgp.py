@@ -512,14 +512,10 @@ def _finish_stack(preds: list, mean: np.ndarray, var: np.ndarray, start: np.ndar
     c = preds[0].config
     bsz, _, count = mean.shape
     _, dgrid, half_dgrid = _grid(count)
-    mean += start[:, :2, None]
-    np.maximum(var, 0.0, out=var)
+    start = np.ascontiguousarray(start)
+    ext = np.empty((bsz, 6))  # the extremes _plausible_rows needs
+    gpkernels.shift_rows(mean, var, start, ext)  # means + last values, variances >= 0
     speed, head, vs, vh = mean[:, 0], mean[:, 1], var[:, 0], var[:, 1]
-    ext = np.empty((bsz, 6))
-    speed.min(axis=1, out=ext[:, 0])
-    speed.max(axis=1, out=ext[:, 1])
-    np.abs(np.diff(mean, axis=2)).max(axis=2, out=ext[:, 2:4])
-    var.max(axis=2, out=ext[:, 4:6])
     all_gp = _all_gp(count)
     sources = [all_gp] * bsz
     for i in np.flatnonzero(~_plausible_rows(c, ext)).tolist():
@@ -537,35 +533,17 @@ def _finish_stack(preds: list, mean: np.ndarray, var: np.ndarray, start: np.ndar
     sc = np.empty((bsz, 2, count))  # sin h, cos h
     np.sin(head, out=sc[:, 0])
     np.cos(head, out=sc[:, 1])
-    # Rates integrated by one cumsum: east and north velocity (E[s]·E[sin h], E[s]·E[cos h],
-    # see integrate), the speed variance and the cross-track variance rate s²·σh².
-    rate = np.empty((bsz, 4, count))
-    np.multiply((speed * np.exp(-0.5 * vh) if c.heading_damping else speed)[:, None], sc,
-                out=rate[:, :2])
-    rate[:, 2] = vs
-    np.multiply(vh, speed * speed, out=rate[:, 3])
-    seg = np.empty((bsz, 4, count - 1))
-    if c.integration == "trapezoid":
-        np.add(rate[:, :2, 1:], rate[:, :2, :-1], out=seg[:, :2])
-        seg[:, :2] *= half_dgrid  # = 0.5·(a + b)·Δt exactly: halving is exact
-    elif c.integration == "left":
-        np.multiply(rate[:, :2, :-1], dgrid, out=seg[:, :2])
-    else:
+    # Integrated: east and north velocity (E[s]·E[sin h], E[s]·E[cos h], see integrate),
+    # the speed variance and the cross-track variance rate s²·σh²; numpy's vectorised
+    # sin, cos and exp, then one compiled pass per row (gpkernels.integrate_rows).
+    if c.integration not in ("trapezoid", "left"):
         raise ValueError(f"unknown integration rule {c.integration!r}")
-    np.multiply(rate[:, 2:, 1:], DT * DT, out=seg[:, 2:])
-    acc = np.empty((bsz, 4, count))
-    acc[..., 0] = 0.0
-    np.cumsum(seg, axis=2, out=acc[..., 1:])
+    eff = speed * np.exp(-0.5 * vh) if c.heading_damping else np.ascontiguousarray(speed)
     table = np.empty((bsz, 6, count))  # x, y, speed, heading (deg), var_x, var_y
-    np.add(acc[:, :2], start[:, 2:, None], out=table[:, :2])
-    table[:, 2] = speed
-    np.degrees(head, out=table[:, 3])
-    np.remainder(table[:, 3], 360.0, out=table[:, 3])
-    # Position variance, first order: var_x = along·sin² h + cross·cos² h, var_y swapped.
-    np.multiply(sc, sc, out=sc)
-    np.multiply(sc, acc[:, 2:3], out=table[:, 4:6])
-    table[:, 4:6] += acc[:, 3:4] * sc[:, ::-1]
-    return [Forecast(grid, table[i], sources[i]) for i in range(bsz)]
+    gpkernels.integrate_rows(eff, sc, mean, var, start, dgrid,
+                             half_dgrid, c.integration == "trapezoid", DT * DT, table)
+    end = float(grid[-1])
+    return [Forecast(grid, row, src, end) for row, src in zip(table, sources, strict=True)]
 
 
 class _BankCache:

@@ -139,15 +139,15 @@ def predict_columns(predictors, t0: float, t1: float):
         else:
             plan = getattr(p, "plan", p.predict)
             a, b = plan(t0), plan(t1)
-        if a.__class__ is Prediction:
+        if a.__class__ is tuple:  # (forecast, tau): read below, with the others
+            reads0.append((i, a))
+        else:
             whole0.append((i, a.x, a.y, a.speed, a.heading, a.var_x, a.var_y))
             sources[i] = a.source
-        else:
-            reads0.append((i, a))
-        if b.__class__ is Prediction:
-            whole1.append((i, b.x, b.y, b.speed, b.heading, b.var_x, b.var_y))
-        else:
+        if b.__class__ is tuple:
             reads1.append((i, b))
+        else:
+            whole1.append((i, b.x, b.y, b.speed, b.heading, b.var_x, b.var_y))
     for j in (0, 1):
         if whole[j]:
             rows = np.array(whole[j]).T

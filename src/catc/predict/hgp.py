@@ -749,7 +749,7 @@ class HgpPredictor(_WindowPredictor):
 
     def predict(self, t: float) -> Prediction:
         answer = self.plan(t)
-        return answer if answer.__class__ is Prediction else read(*answer)
+        return read(*answer) if answer.__class__ is tuple else answer
 
     def plan(self, t: float) -> Prediction | tuple[Forecast, float]:
         """What :meth:`predict` answers at ``t``: the Prediction, or ``(forecast, tau)``

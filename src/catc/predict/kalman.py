@@ -63,7 +63,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, types
 
 from catc.predict.base import Observation, Prediction
 from catc.predict.kinematic import check_observation, elapsed, wrap_heading
@@ -124,6 +123,7 @@ class KalmanPredictor:
         self.q = q
         self.r = np.diag(r)
         self._r = tuple(float(v) for v in r)
+        compiled_kf_step()  # compiled (or loaded) now, with the first filter
         self.min_heading_speed = min_heading_speed
         self.anchor = anchor
         self.reset()
@@ -164,7 +164,7 @@ class KalmanPredictor:
             self._p = (r0, 0.0, 0.0, r1, 0.0, r2)
         else:
             dt = obs.t - self._t
-            self._east, self._north, self._p = _kf_step(
+            self._east, self._north, self._p = _COMPILED_KF_STEP(
                 dt, self.q, self._r, self._p, self._east, self._north, ze, zn)
         self._t, self._heading = obs.t, obs.heading
         if self.anchor:
@@ -209,6 +209,29 @@ class KalmanPredictor:
         return pe + dt * ve + h2 * ae + self._anchor[0], pn + dt * vn + h2 * an + self._anchor[1]
 
 
+_COMPILED_KF_STEP = None
+
+
+def compiled_kf_step():
+    """:func:`_kf_step` compiled (numba, cached per machine): the same IEEE operations in
+    the same order (no fast-math, no fused multiply-adds; tests/test_kinematic.py checks
+    it bit for bit), 1.2 µs a call against 4.1 µs.  The KF runs beside every HGP as a
+    branch, once per accepted BSM (250 a tick at 500 RVs).  Compiled, or loaded from
+    numba's cache, when the first filter is made, not on import: a process that never
+    filters neither imports numba nor compiles (a cold cache, or another CPU such as the
+    SocketCAN tests' emulated one, costs a compilation).  The explicit signature converts
+    ints to floats at the call."""
+    global _COMPILED_KF_STEP
+    if _COMPILED_KF_STEP is None:
+        from numba import njit, types
+
+        f3, f6 = types.UniTuple(types.float64, 3), types.UniTuple(types.float64, 6)
+        _COMPILED_KF_STEP = njit(types.Tuple((f3, f3, f6))(
+            types.float64, types.float64, f3, f6, f3, f3, f3, f3),
+            cache=True, error_model="numpy")(_kf_step)
+    return _COMPILED_KF_STEP
+
+
 def stop_point(pe: float, ve: float, ae: float, pn: float, vn: float, an: float,
                heading_deg: float, dt: float) -> tuple[float, float] | None:
     """The stop rule of a constant-acceleration state (position, velocity, acceleration
@@ -226,19 +249,10 @@ def stop_point(pe: float, ve: float, ae: float, pn: float, vn: float, an: float,
     return pe + ts * ve + hs * ae, pn + ts * vn + hs * an
 
 
-_F3, _F6 = types.UniTuple(types.float64, 3), types.UniTuple(types.float64, 6)
-
-
-@njit(types.Tuple((_F3, _F3, _F6))(types.float64, types.float64, _F3, _F6, _F3, _F3, _F3, _F3),
-      cache=True, error_model="numpy")
 def _kf_step(dt: float, q: float, r: tuple[float, float, float], p: tuple, east: tuple,
-             north: tuple, ze: tuple, zn: tuple) -> tuple[tuple, tuple, tuple]:  # pragma: no cover
-    """One time + measurement update of both axes (see :class:`KalmanPredictor`).
-
-    Compiled (numba): the same IEEE operations in the same order as the Python function
-    (``_kf_step.py_func``; no fast-math, no fused multiply-adds, checked bit for bit by
-    tests/test_kinematic.py), 1.2 µs a call against 4.1 µs: the KF runs beside every
-    HGP as a branch, once per accepted BSM (250 a tick at 500 RVs)."""
+             north: tuple, ze: tuple, zn: tuple) -> tuple[tuple, tuple, tuple]:
+    """One time + measurement update of both axes (see :class:`KalmanPredictor`).  The
+    filter runs it compiled (:func:`compiled_kf_step`)."""
     p00, p01, p02, p11, p12, p22 = p
     h2 = 0.5 * dt * dt
     # P⁻ = A P Aᵀ + Q, A = [[1, dt, dt²/2], [0, 1, dt], [0, 0, 1]]

@@ -57,7 +57,6 @@ class EagerHgp(HgpPredictor):
         if self._obs and obs.t <= self._obs[-1].t:
             return
         if self.virtual and self._kin:
-            d = self.config.branch_decay
             for tj, f, branches in self.past[:-1]:  # the last one is the real gap's
                 lag = obs.t - tj
                 if lag > SHORT_S + 1e-6:
@@ -67,12 +66,7 @@ class EagerHgp(HgpPredictor):
                 for k in branches:
                     px, py = k.position(obs.t)
                     errs.append((px - obs.x) ** 2 + (py - obs.y) ** 2)
-                row = [d * old + (1 - d) * e for old, e in zip(self._score[0], errs,
-                                                               strict=True)]
-                self._score[0] = row
-                self._scored[0] += 1
-                k = min(range(1, len(row)), key=row.__getitem__)
-                self._choice[0] = k if row[k] < self._margins[0] * row[0] else 0
+                self._add_scores(0, errs)  # the short-gap class
         super().update(obs)
         if len(self._obs) >= self.config.min_points:
             self._forecast = self._make_forecast(3.0)

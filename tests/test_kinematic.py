@@ -415,16 +415,23 @@ _observation = st.tuples(
     st.floats(-10.0, 10.0, **_finite), st.floats(-180.0, 180.0, **_finite))
 
 
-@settings(max_examples=150, deadline=None)
-@given(st.lists(_observation, min_size=1, max_size=15), st.floats(0.0, 60.0, **_finite))
-def test_outputs_are_finite_and_heading_in_range(rows: list[tuple[float, ...]],
-                                                 horizon: float) -> None:
+def _fed(rows: list[tuple[float, ...]]) -> tuple[list[Predictor], float]:
+    """Every predictor fed the observations ``rows`` (dt, x, y, speed, heading, accel,
+    yaw rate), and the last time."""
     predictors = [cls() for cls in ALL]
     t = 0.0
     for dt, x, y, speed, heading, accel, yaw_rate in rows:
         t += dt
         for p in predictors:
             p.update(Observation(t, x, y, speed, heading, accel, yaw_rate))
+    return predictors, t
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.lists(_observation, min_size=1, max_size=15), st.floats(0.0, 60.0, **_finite))
+def test_outputs_are_finite_and_heading_in_range(rows: list[tuple[float, ...]],
+                                                 horizon: float) -> None:
+    predictors, t = _fed(rows)
     for p in predictors:
         for when in (t, t + horizon):
             r = p.predict(when)
@@ -441,12 +448,7 @@ def test_position_is_the_predicted_position_bit_for_bit(rows: list[tuple[float, 
                                                         horizon: float) -> None:
     """``position(t)`` (what the HGP's branch scores use) is ``predict(t)``'s x and y,
     exactly, whatever the state: stops of the stop rule, reversing headings, long gaps."""
-    predictors = [cls() for cls in ALL]
-    t = 0.0
-    for dt, x, y, speed, heading, accel, yaw_rate in rows:
-        t += dt
-        for p in predictors:
-            p.update(Observation(t, x, y, speed, heading, accel, yaw_rate))
+    predictors, t = _fed(rows)
     for p in predictors:
         for when in (t, t + horizon, t + 0.1):
             r = p.predict(when)

@@ -462,24 +462,12 @@ def _posterior_stack(rel: np.ndarray, grid: np.ndarray,
     return mean, var
 
 
-def _plausible(c: HgpConfig, lo: float, hi: float, ds: float, dh: float, vs: float,
-               vh: float) -> bool:
-    """True when no forecast step can break a switching criterion, from the extremes of the
-    forecast (least speed ``lo``, greatest ``hi``, greatest step changes of speed ``ds`` and
-    heading ``dh``, greatest variances).  Each criterion of :meth:`HgpPredictor._implausible`
-    is monotone in these, so a True here means it finds nothing; on False it is asked."""
-    if not lo >= 0.0:
-        return False
-    yaw = math.degrees(dh) / DT
-    return (ds / DT <= c.accel_max and yaw <= c.yaw_rate_max
-            and hi * math.radians(yaw) <= c.lat_accel_max
-            and math.sqrt(vs) <= c.speed_std_max
-            and math.degrees(math.sqrt(vh)) <= c.heading_std_max)
-
-
 def _plausible_rows(c: HgpConfig, ext: np.ndarray) -> np.ndarray:
-    """:func:`_plausible` of every row of ``ext`` (B, 6) at once: the same operations on
-    the same numbers (np.degrees and np.radians multiply by the constants math's do)."""
+    """Per row of ``ext`` (B, 6), True when no forecast step can break a switching
+    criterion, from the extremes of the forecast (least speed, greatest speed, greatest
+    step changes of speed and heading, greatest variances).  Each criterion of
+    :meth:`HgpPredictor._implausible` is monotone in these, so True means it finds
+    nothing; on False it is asked.  A NaN extreme is never plausible."""
     lo, hi, ds, dh, vs, vh = ext.T
     yaw = np.degrees(dh) / DT
     ok = lo >= 0.0
@@ -837,9 +825,13 @@ class HgpPredictor(_WindowPredictor):
         for position in self._kin_xy:
             px, py = position(obs.t)
             errs.append((px - x) ** 2 + (py - y) ** 2)
+        self._add_scores(bisect.bisect_left(self.config.branch_edges, gap), errs)
+
+    def _add_scores(self, g: int, errs: list[float]) -> None:
+        """Enter one squared error per branch (the GP first) into gap class ``g``'s
+        scores, and renew that class's choice (and blend weights)."""
         c = self.config
         d = c.branch_decay
-        g = bisect.bisect_left(c.branch_edges, gap)
         row = [d * old + (1.0 - d) * e for old, e in zip(self._score[g], errs, strict=True)]
         self._score[g] = row
         self._scored[g] += 1

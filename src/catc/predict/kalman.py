@@ -194,7 +194,6 @@ class KalmanPredictor:
                    else self._heading)
         return Prediction(x, y, speed, wrap_heading(heading), var, var, self.name)
 
-
     def position(self, t: float) -> tuple[float, float]:
         """``predict(t)``'s (x, y) alone, the same arithmetic: what a branch score needs."""
         if self._t is None:
@@ -215,12 +214,12 @@ _COMPILED_KF_STEP = None
 def compiled_kf_step():
     """:func:`_kf_step` compiled (numba, cached per machine): the same IEEE operations in
     the same order (no fast-math, no fused multiply-adds; tests/test_kinematic.py checks
-    it bit for bit), 1.2 µs a call against 4.1 µs.  The KF runs beside every HGP as a
-    branch, once per accepted BSM (250 a tick at 500 RVs).  Compiled, or loaded from
-    numba's cache, when the first filter is made, not on import: a process that never
-    filters neither imports numba nor compiles (a cold cache, or another CPU such as the
-    SocketCAN tests' emulated one, costs a compilation).  The explicit signature converts
-    ints to floats at the call."""
+    it bit for bit), 1.2 µs a call against 4.1 µs (``python bench/step_parts.py``).  The
+    KF runs beside every HGP as a branch, once per accepted BSM (250 a tick at 500 RVs).
+    Compiled, or loaded from numba's cache, when the first filter is made, not on import:
+    a process that never filters never compiles it (a cold cache, or another CPU such as
+    the SocketCAN tests' emulated one, costs a compilation).  The explicit signature
+    converts ints to floats at the call."""
     global _COMPILED_KF_STEP
     if _COMPILED_KF_STEP is None:
         from numba import njit, types

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from captures.datasets import load
-from captures.sweep import load_datasets, summary, sweep
+from captures.sweep import SweepError, load_datasets, summary, sweep
 from catc.evaluate import evaluate
 from catc.predict import make_predictor
 from catc.sweep import (
@@ -135,6 +135,38 @@ def test_rows_are_the_same_in_process_in_local_processes_and_on_dask():
     assert "PER [%]" in summary(one) and "Rate [Hz]" in summary(one)
 
 
+def test_pooled_rows_put_every_dataset_in_one_percentile(tmp_path):
+    """With two datasets, each (predictor, cell) has a third row, ``pooled``: the 95th
+    percentile of both datasets' PTE samples together and the FCW counts added up.  The
+    expected numbers are made here from the per-trip errors (track_errors), not by pool()."""
+    ng = f"ngsim:{shared_path('ngsim-i80-pairs')}"
+    datasets, _ = load_datasets([ng], max_trips=2)
+    (tmp_path / "b").mkdir()  # the same trips again under another name: a second dataset
+    (tmp_path / "b" / "ngsim-copy").symlink_to(shared_path("ngsim-i80-pairs"))
+    more, _ = load_datasets([f"ngsim:{tmp_path / 'b' / 'ngsim-copy'}"], max_trips=3)
+    datasets.update(more)
+    cell = Cell(0.6, 10.0)
+    rows = {(r.dataset, r.predictor): r for r in sweep(datasets, ["ca"], [cell], [0],
+                                                       fcw_predictors=["ca"])}
+    assert set(rows) == {("ngsim-i80-pairs", "ca"), ("ngsim-copy", "ca"), ("pooled", "ca")}
+    errors = np.concatenate([track_errors(t, "ca", cell, 0)[0]
+                             for tabs in datasets.values() for t in tabs])
+    pooled = rows["pooled", "ca"]
+    assert pooled.n_ticks == len(errors) == sum(rows[d, "ca"].n_ticks for d in datasets)
+    assert pooled.pte95_m == round(float(np.percentile(errors.astype(np.float64), 95)), 4)
+    assert pooled.trips == 5
+    for k in ("tp", "tn", "fp", "fn"):
+        assert pooled.fcw[k] == sum(rows[d, "ca"].fcw[k] for d in datasets)
+    assert pooled.fcw_accuracy == round(
+        (pooled.fcw["tp"] + pooled.fcw["tn"]) / sum(pooled.fcw.values()), 5)
+    # one dataset: no pooled rows; a dataset named like them is refused
+    one = sweep(more, ["ca"], [cell], [0])
+    assert [r.dataset for r in one] == ["ngsim-copy"]
+    (tmp_path / "pooled").symlink_to(shared_path("ngsim-i80-pairs"))
+    with pytest.raises(SweepError, match="pooled"):
+        load_datasets([f"ngsim:{tmp_path / 'pooled'}"], max_trips=1)
+
+
 def _cli(*args, timeout=600):
     return subprocess.run([sys.executable, "-m", "captures.cli", *args], capture_output=True,
                           text=True, timeout=timeout)
@@ -220,8 +252,52 @@ def test_report_from_a_sweep_is_self_contained_and_states_the_verdict(tmp_path):
     assert "The paper's target at PER 90 %" in md
     for ref in ("figures/ngsim-i80-pairs_h3.png", "figures/ngsim-i80-pairs_exceedance.png"):
         assert f"]({ref})" in md and (out / ref).is_file()
+    # issue 17's comparison: HGP over the best of CA and KF here, cell by cell
+    for per, limit in ((50.0, 1.0), (90.0, 0.8)):
+        best = min(by["ca", per, 10.0]["pte95_m"], by["kf", per, 10.0]["pte95_m"])
+        ratio = by["hgp", per, 10.0]["pte95_m"] / best
+        assert f"| {per:g} % | {by['hgp', per, 10.0]['pte95_m']:.4f} | {best:.4f} (" in md
+        assert f"| {ratio:.4f} | ≤ {limit:g} | {'met' if ratio <= limit else '**not met**'} |" \
+            in md
+    assert "](figures/hgp_vs_kinematic.png)" in md
     page = (out / "report.html").read_text()
-    assert page.count("data:image/png;base64,") == 2 and "src='figures" not in page
+    assert page.count("data:image/png;base64,") == 3 and "src='figures" not in page
     assert doc["datasets"]["ngsim-i80-pairs"]["files"]  # provenance carried over
     bad = _cli("report", "--sweep", str(tmp_path / "none.json"), "--out", str(out))
     assert bad.returncode == 2 and bad.stderr.startswith("captures report:")
+
+
+def _row(predictor, per, rate, pte, fcw=None, dataset="d"):
+    return {"dataset": dataset, "predictor": predictor, "per": per, "rate": rate,
+            "pte95_m": pte, "fcw_accuracy": fcw}
+
+
+def test_hgp_targets_compare_with_the_best_kinematic_tracker_cell_by_cell():
+    """Hand-made rows: the best kinematic tracker differs by cell, the bound is 1 below
+    PER 80 % and 0.8 from there, the rate axis has no bound, FCW is against the better of
+    CA and KF (CTRV's and IMM's FCW are not the target's)."""
+    from captures.report import hgp_targets
+
+    rows = [
+        _row("ca", 0.0, 10.0, 0.0), _row("hgp", 0.0, 10.0, 0.0),
+        _row("ca", 30.0, 10.0, 0.030, 0.999), _row("kf", 30.0, 10.0, 0.020, 0.998),
+        _row("imm", 30.0, 10.0, 0.025), _row("hgp", 30.0, 10.0, 0.021, 0.9985),
+        _row("ca", 90.0, 10.0, 4.0, 0.99), _row("ctrv", 90.0, 10.0, 1.0, 0.5),
+        _row("hgp", 90.0, 10.0, 0.79, 0.991), _row("lstm", 90.0, 10.0, 0.1),
+        _row("ca", 0.0, 2.0, 0.20), _row("kf", 0.0, 2.0, 0.10), _row("hgp", 0.0, 2.0, 0.09),
+        _row("ca", 50.0, 10.0, 0.1, dataset="other"),
+    ]
+    by = {(e["axis"], e["per"], e["rate"]): e for e in hgp_targets(rows, "d")}
+    assert list(by) == [("per", 30.0, 10.0), ("per", 90.0, 10.0), ("rate", 0.0, 2.0)]
+    e = by["per", 30.0, 10.0]
+    assert (e["best_name"], e["best"], e["limit"], e["met"]) == ("kf", 0.020, 1.0, False)
+    assert e["ratio"] == pytest.approx(1.05)
+    assert (e["fcw_peer_name"], e["fcw_peer"], e["fcw_met"]) == ("ca", 0.999, False)
+    e = by["per", 90.0, 10.0]  # CTRV is the best kinematic one; the LSTM is not kinematic
+    assert (e["best_name"], e["limit"], e["met"]) == ("ctrv", 0.8, True)
+    assert (e["fcw_peer_name"], e["fcw_met"]) == ("ca", True)
+    e = by["rate", 0.0, 2.0]
+    assert (e["best_name"], e["limit"], e["met"], e["fcw_met"]) == ("kf", None, None, None)
+    assert e["ratio"] == pytest.approx(0.9)
+    assert hgp_targets(rows, "other") == []  # no HGP row there
+    assert hgp_targets(rows, "absent") == []

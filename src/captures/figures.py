@@ -5,6 +5,8 @@
   Rate" figures).
 * ``<dataset>_exceedance.png``: the number of ticks with PTE > PTE_th against PER, one
   panel per threshold from 0.2 to 1.6 m (the paper's threshold-exceedance grid).
+* :func:`targets_figure` (the report's ``hgp_vs_kinematic.png``): HGP's PTE95 over the best
+  kinematic tracker's against PER and rate, one line per dataset, issue 17's targets drawn.
 """
 
 from __future__ import annotations
@@ -128,3 +130,41 @@ def sweep_figures(doc: dict, out: Path) -> list[Path]:
             paths.append(h3_figure(rows, ds, out / f"{ds}_h3.png"))
             paths.append(exceedance_figure(rows, ds, out / f"{ds}_exceedance.png"))
     return paths
+
+
+def targets_figure(rows: list[dict], datasets: list[str], path: Path, targets) -> Path:
+    """HGP's PTE95 over the best kinematic tracker's, one line per dataset: against PER
+    (left, issue 17's targets dashed: 1 from 10 %, 0.8 from 80 to 95 %) and against rate
+    (right).  ``targets``: :func:`captures.report.hgp_targets` (passed in: the report owns
+    the comparison, this module only draws)."""
+    every = {ds: targets(rows, ds) for ds in datasets}
+    with_rates = any(e["axis"] == "rate" for v in every.values() for e in v)
+    fig, axes = plt.subplots(1, 2 if with_rates else 1, figsize=(12 if with_rates else 6.5,
+                                                                 4.2), squeeze=False)
+    left, right = axes[0, 0], axes[0, -1]
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for i, ds in enumerate(datasets):
+        entries = every[ds]
+        style = {"color": colors[i % len(colors)], "marker": "o", "ms": 4, "label": ds,
+                 "lw": 2.2 if ds == "pooled" else 1.4}
+        per = [e for e in entries if e["axis"] == "per"]
+        rate = sorted((e for e in entries if e["axis"] == "rate"), key=lambda e: -e["rate"])
+        left.plot([e["per"] for e in per], [e["ratio"] for e in per], **style)
+        if with_rates:
+            right.plot([e["rate"] for e in rate], [e["ratio"] for e in rate], **style)
+    left.plot([10, 95], [1.0, 1.0], "k--", lw=1, label="target ≤ 1")
+    left.plot([80, 95], [0.8, 0.8], "k:", lw=1.5, label="target ≤ 0.8 (80–95 %)")
+    left.set_xlabel("PER [%] (top rate)")
+    if with_rates:
+        right.axhline(1.0, color="k", ls="--", lw=1)
+        right.set_xlabel("Rate [Hz] (lowest PER)")
+        right.invert_xaxis()
+    for ax in {left, right}:
+        ax.set_ylabel("HGP PTE95 / best kinematic PTE95")
+        ax.grid(True, alpha=0.3)
+    left.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path

@@ -200,6 +200,115 @@ def verdict(rows: list[dict], ds: str, baselines=VERDICT_BASELINES) -> list[str]
     return out
 
 
+#: Issue 17's comparison: HGP against the best of these kinematic trackers, cell by cell.
+KINEMATIC = ("ca", "kf", "ctrv", "imm")
+#: ... and HGP's FCW accuracy against the best of these.
+FCW_PEERS = ("ca", "kf")
+#: HGP's PTE95 over the best kinematic tracker's, at most 1 at every PER from 10 to 95 %
+#: and at most 0.8 from 80 % (issue 17, part 2); none on the rate axis (part 4 asks where
+#: HGP's advantage holds, not for a bound).
+RATIO_TARGET = ((10.0, 1.0), (80.0, 0.8))
+
+
+def _ratio_limit(per: float) -> float | None:
+    limit = None
+    for lo, value in RATIO_TARGET:
+        if per >= lo:
+            limit = value
+    return limit if per <= 95.0 else None
+
+
+def hgp_targets(rows: list[dict], ds: str) -> list[dict]:
+    """HGP against the best kinematic tracker (:data:`KINEMATIC`, the lowest PTE95 of those
+    in the rows) and its FCW accuracy against the best of :data:`FCW_PEERS`: one entry per
+    PER > 0 at the top rate (``axis`` "per", with the target of :data:`RATIO_TARGET`), then
+    per rate below the top at the lowest PER (``axis`` "rate", no target).  Cells without
+    an HGP or a kinematic PTE95 are left out; ``fcw_met`` is None without FCW rows."""
+    mine = [r for r in rows if r["dataset"] == ds]
+    if not mine:
+        return []
+    top, low = max(r["rate"] for r in mine), min(r["per"] for r in mine)
+    by = {(r["predictor"], r["per"], r["rate"]): r for r in mine}
+    cells = sorted({(r["per"], r["rate"]) for r in mine if r["rate"] == top and r["per"] > 0})
+    cells += sorted({(r["per"], r["rate"]) for r in mine
+                     if r["per"] == low and r["rate"] < top}, key=lambda c: -c[1])
+    out = []
+    for per, rate in cells:
+        h = by.get(("hgp", per, rate))
+        kin = [(by[k, per, rate]["pte95_m"], k) for k in KINEMATIC
+               if (k, per, rate) in by and by[k, per, rate]["pte95_m"] is not None]
+        if h is None or h["pte95_m"] is None or not kin:
+            continue
+        best, name = min(kin)
+        ratio = h["pte95_m"] / best if best > 0 else float("inf") if h["pte95_m"] > 0 else 1.0
+        limit = _ratio_limit(per) if rate == top else None
+        fcw = [(by[k, per, rate]["fcw_accuracy"], k) for k in FCW_PEERS
+               if (k, per, rate) in by and by[k, per, rate]["fcw_accuracy"] is not None]
+        fcw_peer, fcw_name = max(fcw) if fcw else (None, None)
+        fh = h["fcw_accuracy"]
+        out.append({"axis": "per" if rate == top else "rate", "per": per, "rate": rate,
+                    "hgp": h["pte95_m"], "best": best, "best_name": name, "ratio": ratio,
+                    "limit": limit, "met": None if limit is None else ratio <= limit,
+                    "fcw_hgp": fh, "fcw_peer": fcw_peer, "fcw_peer_name": fcw_name,
+                    "fcw_met": None if fh is None or fcw_peer is None else fh >= fcw_peer})
+    return out
+
+
+def _targets_section(doc: Doc, rows: list[dict], datasets: list[str], figure: Path | None
+                     ) -> None:
+    doc.h(2, "HGP against the best kinematic tracker (issue 17)")
+    doc.p("In every cell, HGP's PTE95 over the lowest of " + ", ".join(
+        k.upper() for k in KINEMATIC) + " (whichever is in the sweep), and HGP's FCW "
+          "accuracy against the better of " + " and ".join(k.upper() for k in FCW_PEERS)
+          + ".  Targets: the ratio at most 1 at every PER from 10 to 95 % and at most 0.8 "
+          "from 80 %; FCW accuracy at least the peers' at every PER.  On the rate axis (PER "
+          "0 %) the table says where HGP's advantage holds; it sets no target there.")
+    for ds in datasets:
+        entries = hgp_targets(rows, ds)
+        if not entries:
+            continue
+        doc.h(3, ds)
+        body = []
+        for e in entries:
+            cell = f"{e['per']:g} %" if e["axis"] == "per" else f"{e['rate']:g} Hz"
+            target = "-" if e["limit"] is None else f"≤ {e['limit']:g}"
+            met = {None: "", True: "met", False: "**not met**"}[e["met"]]
+            fcw = "-" if e["fcw_hgp"] is None else f"{e['fcw_hgp']:.5f}"
+            peer = "-" if e["fcw_peer"] is None else \
+                f"{e['fcw_peer']:.5f} ({e['fcw_peer_name'].upper()})"
+            fmet = {None: "", True: "met", False: "**not met**"}[e["fcw_met"]]
+            if e["axis"] == "rate" and e["fcw_met"] is not None:
+                fmet = "at least" if e["fcw_met"] else "below"
+            body.append([cell, f"{e['hgp']:.4f}", f"{e['best']:.4f} ({e['best_name'].upper()})",
+                         f"{e['ratio']:.4f}", target, met, fcw, peer, fmet])
+        doc.table(["PER / rate", "HGP PTE95 [m]", "best kinematic [m]", "HGP / best",
+                   "target", "PTE", "HGP FCW acc", "best of CA, KF", "FCW"], body)
+        per = [e for e in entries if e["met"] is not None]
+        missed = [e for e in per if not e["met"]]
+        fcw = [e for e in entries if e["axis"] == "per" and e["fcw_met"] is not None]
+        fmissed = [e for e in fcw if not e["fcw_met"]]
+        rate = [e for e in entries if e["axis"] == "rate"]
+        items = [f"PTE95 target met at {len(per) - len(missed)} of {len(per)} PERs" + (
+            "; not at " + ", ".join(f"{e['per']:g} % (×{e['ratio']:.4f} against "
+                                    f"{e['limit']:g}, {e['best_name'].upper()})"
+                                    for e in missed) if missed else "") + "."]
+        if fcw:
+            items.append(f"FCW accuracy target met at {len(fcw) - len(fmissed)} of {len(fcw)} "
+                         "PERs" + ("; below at " + ", ".join(
+                             f"{e['per']:g} % ({e['fcw_hgp']:.5f} against "
+                             f"{e['fcw_peer_name'].upper()} {e['fcw_peer']:.5f})"
+                             for e in fmissed) if fmissed else "") + ".")
+        if rate:
+            wins = [f"{e['rate']:g}" for e in rate if e["ratio"] < 1.0]
+            items.append("Rate axis: HGP's PTE95 is below the best kinematic tracker's at "
+                         + (", ".join(wins) + " Hz" if wins else "no rate") + " of "
+                         + ", ".join(f"{e['rate']:g}" for e in rate) + " Hz.")
+        doc.bullets(items)
+    if figure is not None:
+        doc.figure(figure, "HGP's PTE95 over the best kinematic tracker's, against PER (the "
+                           "targets dashed) and against rate, per dataset")
+
+
 def exceedance_table(rows: list[dict], ds: str, per: float) -> tuple[list[str], list]:
     top = max(r["rate"] for r in rows if r["dataset"] == ds)
     mine = [r for r in rows if r["dataset"] == ds and r["rate"] == top and r["per"] == per]
@@ -223,7 +332,7 @@ def _provenance_line(files: dict) -> str:
 
 def build(doc: Doc, sweep_doc: dict, hgp: dict | None, capture_figs: list[Path],
           command: str) -> None:
-    from captures.figures import sweep_figures
+    from captures.figures import sweep_figures, targets_figure
 
     rows = sweep_doc["rows"]
     datasets = list(dict.fromkeys(r["dataset"] for r in rows))
@@ -305,6 +414,11 @@ def build(doc: Doc, sweep_doc: dict, hgp: dict | None, capture_figs: list[Path],
     doc.p("Ratios in the paper's own table: " + ", ".join(ratios) + " (its text says "
           "\"60 % larger\" at 90 %).")
 
+    target_fig = None
+    if any(hgp_targets(rows, ds) for ds in datasets):
+        target_fig = targets_figure(rows, [ds for ds in datasets if hgp_targets(rows, ds)],
+                                    doc.out / "figures" / "hgp_vs_kinematic.png", hgp_targets)
+    _targets_section(doc, rows, datasets, target_fig)
     doc.h(2, "Threshold exceedance")
     for ds in datasets:
         if f"{ds}_exceedance.png" in figs:

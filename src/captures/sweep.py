@@ -161,6 +161,9 @@ def load_datasets(specs: list[str], max_trips: int = 0
         label = dataset_label(spec)
         if label in out:
             raise SweepError(f"two datasets named {label!r}; give them different paths")
+        if label == POOLED:
+            raise SweepError(f"a dataset may not be named {POOLED!r} (the rows over all "
+                             "datasets are); give it a different path")
         tables, files, skipped = [], {}, []
         for path, tabs in load_files(spec):
             files[str(path)] = _sha256(path)
@@ -334,12 +337,19 @@ def _cost(table: MobilityTable, predictor: str, fcw: bool) -> float:
     return sum(len(tr) for tr in table.tracks.values()) * (0.15 + gp) / 1e4
 
 
+#: The dataset label of the rows that pool every dataset of a sweep (when it has several):
+#: all their ticks in one percentile and all their FCW ticks in one accuracy, so a dataset
+#: with more ticks weighs more (issue 17's targets are per dataset and pooled).
+POOLED = "pooled"
+
+
 def sweep(datasets: dict[str, list[MobilityTable]], predictors: list[str],
           grid: list[Cell], seeds: Iterable[int], *, fcw_predictors: Iterable[str] = (),
           workers: int = 1, dask: str | None = None,
           progress: Callable[[float, float], None] | None = None,
           cpu: dict[str, float] | None = None) -> list[Row]:
-    """Every (dataset, predictor, cell) row over all trips and seeds (module docstring).
+    """Every (dataset, predictor, cell) row over all trips and seeds (module docstring),
+    then, with more than one dataset, the :data:`POOLED` rows over all of them.
     ``progress(done, total)`` in units of estimated cost; ``cpu`` (when given) collects
     the CPU seconds spent per predictor and metric."""
     seeds = list(seeds)
@@ -375,6 +385,10 @@ def sweep(datasets: dict[str, list[MobilityTable]], predictors: list[str],
                 progress(done, total)
     rows = [pool(label, by[label, p, c], trips=len(datasets[label])) for label in datasets
             for p in predictors for c in grid]
+    if len(datasets) > 1:  # every tick of every dataset in one percentile
+        rows += [pool(POOLED, [r for label in datasets for r in by[label, p, c]],
+                      trips=sum(len(t) for t in datasets.values()))
+                 for p in predictors for c in grid]
     for row in rows:
         if row.predictor not in fcw_set:
             row.fcw_accuracy = None

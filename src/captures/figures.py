@@ -19,6 +19,8 @@ matplotlib.use("Agg")
 
 import matplotlib.pyplot as plt
 
+from captures.sweep import POOLED
+
 #: One colour and marker per predictor, the same in every figure.
 STYLE = {
     "hold": ("#7f7f7f", "x"), "cs": ("#bcbd22", "v"), "ca": ("#1f77b4", "s"),
@@ -132,21 +134,19 @@ def sweep_figures(doc: dict, out: Path) -> list[Path]:
     return paths
 
 
-def targets_figure(rows: list[dict], datasets: list[str], path: Path, targets) -> Path:
+def targets_figure(targets: dict[str, list[dict]], path: Path) -> Path:
     """HGP's PTE95 over the best kinematic tracker's, one line per dataset: against PER
     (left, issue 17's targets dashed: 1 from 10 %, 0.8 from 80 to 95 %) and against rate
-    (right).  ``targets``: :func:`captures.report.hgp_targets` (passed in: the report owns
-    the comparison, this module only draws)."""
-    every = {ds: targets(rows, ds) for ds in datasets}
-    with_rates = any(e["axis"] == "rate" for v in every.values() for e in v)
+    (right, when the sweep has rates).  ``targets``: dataset -> the entries of
+    :func:`captures.report.hgp_targets` (the report owns the comparison; this only draws)."""
+    with_rates = any(e["axis"] == "rate" for v in targets.values() for e in v)
     fig, axes = plt.subplots(1, 2 if with_rates else 1, figsize=(12 if with_rates else 6.5,
                                                                  4.2), squeeze=False)
     left, right = axes[0, 0], axes[0, -1]
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    for i, ds in enumerate(datasets):
-        entries = every[ds]
+    for i, (ds, entries) in enumerate(targets.items()):
         style = {"color": colors[i % len(colors)], "marker": "o", "ms": 4, "label": ds,
-                 "lw": 2.2 if ds == "pooled" else 1.4}
+                 "lw": 2.2 if ds == POOLED else 1.4}
         per = [e for e in entries if e["axis"] == "per"]
         rate = sorted((e for e in entries if e["axis"] == "rate"), key=lambda e: -e["rate"])
         left.plot([e["per"] for e in per], [e["ratio"] for e in per], **style)

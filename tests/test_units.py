@@ -111,3 +111,14 @@ def test_array_form_round_trips_and_quantizes_like_the_codec():
     for name in arr.dtype.names:
         assert np.array_equal(quantized[name], decoded[name],
                               equal_nan=name in CORE_QUANTITIES), name
+
+
+def test_sec_mark_and_msg_cnt_wrap():
+    from catc.bsm import msg_cnt, sec_mark
+
+    assert sec_mark(0.0) == 0
+    assert sec_mark(59.9994) == 59_999
+    assert sec_mark(59.9996) == 0  # rounds to the next minute, which wraps
+    assert sec_mark(61.25) == 1_250
+    assert sec_mark(3600.1) == 100
+    assert [msg_cnt(s) for s in (0, 127, 128, 300)] == [0, 127, 0, 44]

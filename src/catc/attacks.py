@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from catc.bsm import BSM
+from catc.bsm import BSM, msg_cnt, sec_mark
 
 __all__ = [
     "FABRICATED",
@@ -213,7 +213,7 @@ class Attacks:
     def _next_cnt(self, tid: int) -> int:
         n = self._msg_cnt.get(tid, -1) + 1
         self._msg_cnt[tid] = n
-        return n % 128
+        return msg_cnt(n)
 
     def _fabricated(self, k: int, a: Attack, t: float) -> list[BSM]:
         tau = t - self.t0 - a["start"]
@@ -229,7 +229,7 @@ class Attacks:
             lat, lon, hdg = self.host_path.at(s)
             tid = self.ID_BASE | (k << 8)
             return [BSM(msg_cnt=self._next_cnt(tid), temp_id=tid,
-                        sec_mark=round(t * 1000.0) % 60_000, lat=lat, lon=lon, speed=v,
+                        sec_mark=sec_mark(t), lat=lat, lon=lon, speed=v,
                         heading=hdg, accel_long=-decel if v > 0 else 0.0, yaw_rate=0.0,
                         length=4.5, width=1.8)]
         # sybil: ids along the sender's own path, behind it
@@ -246,7 +246,7 @@ class Attacks:
             lat, lon, hdg = path.at(s - (j + 1) * a["spacing"])
             tid = self.ID_BASE | (k << 8) | (j + 1)
             out.append(BSM(msg_cnt=self._next_cnt(tid), temp_id=tid,
-                           sec_mark=round(t * 1000.0) % 60_000, lat=lat, lon=lon,
+                           sec_mark=sec_mark(t), lat=lat, lon=lon,
                            speed=speed, heading=hdg, accel_long=0.0, yaw_rate=0.0,
                            length=4.5, width=1.8))
         return out

@@ -176,6 +176,24 @@ class PathPrediction:
     confidence: float
 
 
+#: secMark wraps here: J2735 DSecond is milliseconds within the UTC minute.
+MINUTE_MS = 60_000
+#: msgCnt wraps here: J2735 MsgCount is 0..127.
+MSG_COUNT_MODULUS = 128
+
+
+def sec_mark(t: float) -> int:
+    """The secMark of a message generated at time ``t`` (s): its milliseconds within the
+    minute, ``round(t * 1000) mod 60000``.  The RVE stamps its BSMs with it and the
+    capture files join their records on it (:mod:`hil.capture.schema`)."""
+    return round(t * 1000.0) % MINUTE_MS
+
+
+def msg_cnt(seq: int) -> int:
+    """The msgCnt of a vehicle's ``seq``-th message (counted from 0): ``seq mod 128``."""
+    return seq % MSG_COUNT_MODULUS
+
+
 @dataclass(frozen=True, slots=True)
 class BSM:
     """A BasicSafetyMessage in SI units (see the module docstring for every unit)."""

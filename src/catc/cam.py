@@ -90,7 +90,8 @@ from itertools import chain
 import numpy as np
 import numpy.typing as npt
 
-from catc.bsm import BSM
+from catc.bsm import BSM, MINUTE_MS
+from catc.bsm import sec_mark as bsm_sec_mark
 from catc.classify import (
     DIRECTION_CODES,
     LATERAL_CODES,
@@ -247,10 +248,9 @@ def message_time(now: float, sec_mark: int) -> float:
     and the result is then after ``now``.  Either reading is rejected by the CAM (late or
     future), since ``stale_after_s`` is at most 30 s.
     """
-    now_ms = round(now * 1000.0) % 60_000
-    age_ms = (now_ms - sec_mark) % 60_000
-    if age_ms > 30_000:
-        age_ms -= 60_000
+    age_ms = (bsm_sec_mark(now) - sec_mark) % MINUTE_MS
+    if age_ms > MINUTE_MS // 2:
+        age_ms -= MINUTE_MS
     return now - age_ms / 1000.0
 
 

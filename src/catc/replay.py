@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from catc.bsm import BSM
+from catc.bsm import BSM, msg_cnt, sec_mark
 from catc.cam import ContextAwareMap, MapSnapshot
 from catc.channel import ChannelConfig, schedule
 from catc.mobility import MobilityTable, Track
@@ -53,13 +53,13 @@ def _size(track: Track) -> tuple[float | None, float | None]:
     return _opt(track.length), _opt(track.width)
 
 
-def _bsm(msg_cnt: int, tid: int, size: tuple[float | None, float | None], t: float,
+def _bsm(count: int, tid: int, size: tuple[float | None, float | None], t: float,
          lat: float, lon: float, elev: float, speed: float, heading: float, accel: float,
          yaw_rate: float) -> BSM:
     """The BSM of one sample of a track (:func:`_size`) from its values (Python floats)."""
     length, width = size
     return BSM(
-        msg_cnt=msg_cnt, temp_id=tid, sec_mark=round(t * 1000.0) % 60_000, lat=lat, lon=lon,
+        msg_cnt=count, temp_id=tid, sec_mark=sec_mark(t), lat=lat, lon=lon,
         elev=_opt(elev), speed=speed, heading=heading % 360.0, accel_long=accel,
         yaw_rate=yaw_rate, length=length, width=width)
 
@@ -71,7 +71,7 @@ def _sample(track: Track, i: int) -> list[float]:
 
 def track_bsm(track: Track, i: int, tid: int | None = None) -> BSM:
     """The BSM for sample ``i`` of ``track`` (see the module docstring for each field)."""
-    return _bsm(i % 128, temp_id(track.vehicle_id) if tid is None else tid, _size(track),
+    return _bsm(msg_cnt(i), temp_id(track.vehicle_id) if tid is None else tid, _size(track),
                 *_sample(track, i))
 
 
@@ -166,7 +166,7 @@ class Plan:
     def bsm(self, event: np.void) -> BSM:
         """The BSM of one event (msgCnt from the send sequence)."""
         tr = self.table.tracks[self.vehicles[int(event["vehicle"])]]
-        return _bsm(int(event["seq"]) % 128, temp_id(tr.vehicle_id), _size(tr),
+        return _bsm(msg_cnt(int(event["seq"])), temp_id(tr.vehicle_id), _size(tr),
                     *_sample(tr, int(event["index"])))
 
 
@@ -234,7 +234,7 @@ def simulate(the_plan: Plan, cam: ContextAwareMap, wire: bool = True
     for dropped, host, vehicle, index, seq in zip(*columns, strict=True):
         if dropped:
             continue
-        m = bsms.bsm(vehicle, index, seq % 128)  # the_plan.bsm(event)
+        m = bsms.bsm(vehicle, index, msg_cnt(seq))  # the_plan.bsm(event)
         if wire:
             m = decode_frame(encode_frame(m))
         if not host:

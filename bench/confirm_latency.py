@@ -24,7 +24,7 @@ from catc.apps import SafetyApps
 from catc.cam import CamConfig, ContextAwareMap
 from catc.channel import ChannelConfig
 from catc.replay import plan, simulate
-from rve.run import load_table
+from hil.datasets import load_table
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 NYC = DATA / "cv-pilot-samples" / "nycdot-fcw-event.json"

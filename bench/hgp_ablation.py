@@ -23,13 +23,13 @@ from pathlib import Path
 
 import numpy as np
 
-from captures.datasets import load
 from catc.channel import bernoulli_received
 from catc.evaluate import replay_track
 from catc.predict import gp, make_predictor
 from catc.predict.bank import KernelBank
 from catc.predict.hgp import HgpConfig, HgpPredictor
 from catc.predict.training import series
+from hil.datasets import load
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 DATASETS = {"openacc": str(DATA / "openacc-zalazone"),

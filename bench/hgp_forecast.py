@@ -177,8 +177,8 @@ def cost(args) -> dict:
 
 
 def pte(args) -> dict:
-    from captures.datasets import load
     from catc.evaluate import evaluate
+    from hil.datasets import load
 
     out: dict = {}
     for name, spec in PTE_DATASETS.items():

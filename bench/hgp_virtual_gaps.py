@@ -29,13 +29,13 @@ from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
-from captures.datasets import load
 from catc.channel import bernoulli_received
 from catc.evaluate import observations
 from catc.predict import make_predictor
 from catc.predict.forecast import read_xy
 from catc.predict.hgp import HgpPredictor
 from hgp_ablation import DATASETS
+from hil.datasets import load
 
 SHORT_S = 0.35  # the short-gap class (HgpConfig.branch_edges[0])
 

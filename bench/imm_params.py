@@ -23,11 +23,11 @@ from pathlib import Path
 
 import numpy as np
 
-from captures.datasets import load
 from catc.channel import bernoulli_received
 from catc.evaluate import replay_track
 from catc.predict import make_predictor
 from catc.predict.imm import ImmPredictor
+from hil.datasets import load
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 OA = DATA / "openacc-zalazone"

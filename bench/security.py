@@ -104,7 +104,7 @@ def real_frames(n: int) -> list[bytes]:
     from catc.channel import ChannelConfig
     from catc.j2735 import encode_frame
     from catc.replay import plan
-    from rve.run import load_table
+    from hil.datasets import load_table
 
     the_plan = plan(load_table("scenario:highway-braking", None), ChannelConfig())
     events = [ev for ev in the_plan.events if not ev["host"]][:n]

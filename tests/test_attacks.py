@@ -21,8 +21,8 @@ import pytest
 from catc.attacks import KINDS, Attacks, parse
 from catc.channel import ChannelConfig
 from catc.replay import plan
+from hil.datasets import load_table
 from hil.transport.udp import free_ports
-from rve.run import load_table
 from tests.test_obu import finish, rve, score, start_obu
 from tests.test_security_e2e import pki  # noqa: F401  (fixture)
 

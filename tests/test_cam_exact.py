@@ -115,7 +115,7 @@ def _numpy_paths_digest(monkeypatch, table: MobilityTable) -> str:
 
 
 def _load(spec: str) -> list[MobilityTable]:
-    from captures.datasets import load
+    from hil.datasets import load
 
     return load(spec)
 
@@ -151,7 +151,7 @@ def test_openacc_platoon_fast_paths_are_exact(monkeypatch) -> None:
 def test_sumo_highway_braking_fast_paths_are_exact(monkeypatch) -> None:
     """The packaged SUMO scenario: RVs behind the HV (path-history projection), BSW, LCW
     and EEBL warnings, 16 RVs (the numpy path).  No shared data needed."""
-    path = resources.files("rve").joinpath("scenarios", "highway-braking.fcd.xml")
+    path = resources.files("hil").joinpath("scenarios", "highway-braking.fcd.xml")
     table = _load(f"sumo:{path}")[0]
     snaps = _replay(table)
     assert max(len(s) for s in snaps) > classify._SMALL_ROWS // 2
@@ -217,7 +217,7 @@ def test_point_by_point_enu_is_the_array_one(monkeypatch, n: int) -> None:
 
 def test_snapshots_carry_every_field() -> None:
     """The CAM builds snapshots without the dataclass ``__init__``: every field is set."""
-    path = resources.files("rve").joinpath("scenarios", "highway-braking.fcd.xml")
+    path = resources.files("hil").joinpath("scenarios", "highway-braking.fcd.xml")
     table = _load(f"sumo:{path}")[0]
     names = {f.name for f in dataclasses.fields(MapSnapshot)}
     for s in _replay(table, duration=5.0):

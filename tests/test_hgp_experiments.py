@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from captures import hgp_experiments as hx
-from captures.datasets import load
 from catc.predict.bank import default_bank
 from catc.predict.training import persistency
+from hil.datasets import load
 from tests.conftest import shared_path
 
 SMALL_TRIP = "short_setting_dynamic_part22.csv"  # 33 s, two vehicles

@@ -22,7 +22,7 @@ from catc.bsm import BSM, TransmissionState
 from catc.channel import ChannelConfig
 from catc.mbd import CHECKS, Detection, MbdConfig, MisbehaviorDetector, local_offset_m
 from catc.replay import plan, temp_id
-from rve.run import load_table
+from hil.datasets import load_table
 from tests.conftest import shared_path
 
 # --- helpers ----------------------------------------------------------------------------
@@ -220,7 +220,7 @@ def test_real_gnss_platoons_raise_nothing_but_late_starters():
     log begins 8 s into its file, 65 m from the host: to a receiver, a car switching its
     radio on nearby, which is what F2MD's sudden appearance flags.  That finding is
     reported but, outside the host's safety range, quarantines nobody."""
-    from captures.datasets import load
+    from hil.datasets import load
 
     folder = shared_path("openacc-zalazone")
     files = sorted(folder.glob("*.csv"))
@@ -252,7 +252,7 @@ def test_the_other_sumo_scenarios_raise_nothing_but_insertions(name, tmp_path):
     light with cross traffic in front of it.  SUMO inserts vehicles where their routes
     begin, up to 300 m from the junction: one that enters within F2MD's 210 m of the host
     is a (weak) sudden appearance, never a quarantine."""
-    from captures.datasets import load
+    from hil.datasets import load
     from rve import scenario
 
     try:
@@ -279,7 +279,7 @@ def test_a_real_faulty_bsm_stream_is_caught():
     """The NYC CV pilot's FCW target broadcast a speed stuck at 5.68 m/s while its positions
     advance at about 22 m/s (a J3287 faulty BSM): the position-speed check catches it, and
     nothing else fires."""
-    from captures.datasets import load
+    from hil.datasets import load
 
     (tab,) = load(f"nyc:{shared_path('cv-pilot-samples', 'nycdot-fcw-event.json')}")
     the_plan = plan(tab, ChannelConfig(), 0)

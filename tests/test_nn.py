@@ -293,9 +293,9 @@ def test_shipped_models_on_a_held_out_run() -> None:
     from dataclasses import replace
     from functools import partial
 
-    from captures.datasets import load
     from catc.evaluate import evaluate
     from catc.predict import make_predictor
+    from hil.datasets import load
 
     table = load(str(shared_path("openacc-zalazone", "no_ACC_handling_part40.csv")))[0]
     for name in NN_NAMES:

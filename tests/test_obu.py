@@ -26,6 +26,7 @@ from catc.cam import CamConfig, ContextAwareMap
 from catc.channel import ChannelConfig
 from catc.j2735 import encode_frame
 from catc.replay import plan, simulate
+from hil.datasets import load_table
 from hil.transport.udp import free_ports, wait_bound
 from obu import run as obu_run
 from rve import run as rve_run
@@ -109,7 +110,7 @@ def test_live_equals_offline(tmp_path):
     rve(ports, "--per", "40", "--burst", "2", "--seed", "9", "--speed", "4",
         "--duration", "25", "--capture", str(tmp_path))
     finish(obu)
-    table = rve_run.load_table("scenario:highway-braking", None)
+    table = load_table("scenario:highway-braking", None)
     the_plan = plan(table, ChannelConfig(per=0.4, burst=2.0), 9, None, 25.0)
     offline = {}
     for snap in simulate(the_plan, ContextAwareMap(CamConfig(predictor="hgp"))):
@@ -224,7 +225,7 @@ def test_can_end_to_end_on_the_virtual_bus(tmp_path):
              can_fd=True, per=50.0, seed=3, duration=25.0, speed=8.0, capture=str(tmp_path),
              progress=False)
     rve_args = argparse.Namespace(**r)
-    table = rve_run.load_table(rve_args.dataset, None)
+    table = load_table(rve_args.dataset, None)
     the_plan = plan(table, ChannelConfig(per=0.5), 3, None, 25.0)
 
     async def main():
@@ -315,11 +316,12 @@ def test_captures_decode_reads_the_obus_rx_capture(tmp_path):
 
 
 def test_score_reads_a_torn_last_line_but_not_a_torn_middle(tmp_path):
-    from captures.score import ScoreError, _lines
+    from hil.capture import CaptureError
+    from hil.capture import read_lines as _lines
 
     path = tmp_path / "x.jsonl"
     path.write_text('{"a":1}\n{"b":2}\n{"c":')  # killed mid-line
     assert _lines(path) == [{"a": 1}, {"b": 2}]
     path.write_text('{"a":1}\n{"b":\n{"c":3}\n')
-    with pytest.raises(ScoreError, match=":2: not a JSON line"):
+    with pytest.raises(CaptureError, match=":2: not a JSON line"):
         _lines(path)

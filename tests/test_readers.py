@@ -14,12 +14,12 @@ from datetime import UTC, datetime
 import numpy as np
 import pytest
 
-from captures.datasets import DatasetError, load, load_files
 from catc import datasets
 from catc.datasets import ode, openacc, spmd
 from catc.geo import EnuFrame
 from catc.j2735 import decode_frame, obulog
 from catc.mobility import DT, Track
+from hil.datasets import DatasetError, load, load_files
 from tests.conftest import shared_path
 
 #: Gentime (us since 2004-01-01 UTC) of 2013-04-11 14:02:00 UTC, a minute start.

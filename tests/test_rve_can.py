@@ -19,8 +19,9 @@ import pytest
 from catc.channel import ChannelConfig
 from catc.j2735 import decode_frame
 from catc.replay import plan, temp_id
+from hil.datasets import load_table
 from hil.transport import open_receiver
-from rve.run import DEFAULTS, load_table, replay
+from rve.run import DEFAULTS, replay
 from tests.conftest import shared_path
 from tests.test_transport import _peer, bus, netns  # noqa: F401  (fixtures)
 

@@ -28,7 +28,7 @@ from catc.replay import run_offline, temp_id
 from rve import scenario
 from rve.cli import main as rve_main
 
-SHIPPED = resources.files("rve").joinpath("scenarios", "highway-braking.fcd.xml")
+SHIPPED = resources.files("hil").joinpath("scenarios", "highway-braking.fcd.xml")
 FRAME = EnuFrame(46.89, 16.84, 0.0)
 
 

@@ -11,7 +11,6 @@ from functools import partial
 import numpy as np
 import pytest
 
-from captures.datasets import load
 from captures.sweep import SweepError, load_datasets, summary, sweep
 from catc.evaluate import evaluate
 from catc.predict import make_predictor
@@ -26,6 +25,7 @@ from catc.sweep import (
     track_errors,
     truth_fcw,
 )
+from hil.datasets import load
 from tests.conftest import shared_path
 
 

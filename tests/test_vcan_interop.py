@@ -36,8 +36,9 @@ from catc.channel import ChannelConfig
 from catc.j2735 import decode_frame
 from catc.j2735.sniff import extract_frames
 from catc.replay import plan
+from hil.datasets import load_table
 from hil.transport.can import HOST_IDS, RV_IDS
-from rve.run import _frame, load_table
+from rve.run import _frame
 from tests.conftest import shared_path
 from tests.test_rve_can import BURST, PER, SEED, _dataset, _expected
 from tests.test_transport import vcan_interface

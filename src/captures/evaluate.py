@@ -13,10 +13,10 @@ import sys
 from functools import partial
 from pathlib import Path
 
-from captures.datasets import DatasetError, load
 from captures.progress import Progress
 from catc.evaluate import Score, evaluate
 from catc.predict import NAMES, available, check, make_predictor
+from hil.datasets import DatasetError, load
 
 HELP = """\
 Replay every vehicle of the given trips through a seeded Bernoulli channel at each PER and

@@ -35,12 +35,12 @@ from pathlib import Path
 
 import numpy as np
 
-from captures.datasets import load
 from catc.mobility import MobilityTable, Track
 from catc.predict import gp
 from catc.predict.bank import KernelBank, default_bank
 from catc.predict.hgp import HgpConfig
 from catc.predict.training import DT, TrainConfig, persistency
+from hil.datasets import load
 
 THRESHOLD_MS = 100.0
 """The paper's real-time requirement for the safety applications (H1)."""

@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from captures.score import ScoreError, clock_offset, read_capture, truth_in_frame
+from hil.capture import clock_offset, read_capture, truth_in_frame
 
 __all__ = ["Run", "animate", "auto_times", "birdseye", "load_run", "register", "run",
            "timeline"]
@@ -200,14 +200,14 @@ def _spans(events: list[dict], end_t: float) -> list[tuple[str, str, float, floa
 
 
 def load_run(directory: Path | str) -> Run:
-    """Read a capture directory (:class:`captures.score.ScoreError` when it cannot be)."""
+    """Read a capture directory (:class:`hil.capture.CaptureError` when it cannot be)."""
     from catc.cam import CamConfig
 
     directory = Path(directory)
     cap = read_capture(directory, rx=False)
-    rve_cfg, obu_cfg, ticks = cap["rve_cfg"], cap["obu_cfg"], cap["ticks"]
-    track_rows, truth_rows = cap["tracks"], cap["truth"]
-    schedule, events = cap["schedule"], cap["events"]
+    rve_cfg, obu_cfg, ticks = cap.rve_config, cap.obu_config, cap.ticks
+    track_rows, truth_rows = cap.tracks, cap.truth
+    schedule, events = cap.schedule, cap.events
     names = {tid: v for v, tid in rve_cfg["vehicles"].items()}
     host_id = rve_cfg["vehicles"].get(rve_cfg.get("host"), "")
     offset = clock_offset(truth_rows, ticks[0], directory)
@@ -941,10 +941,10 @@ def _times(text: str | None, run_: Run) -> list[float]:
         try:
             t = float(part)
         except ValueError:
-            raise ScoreError(f"--at: not a time in seconds: {part.strip()!r}") from None
+            raise ValueError(f"--at: not a time in seconds: {part.strip()!r}") from None
         i = run_.tick_index(t)
         if not math.isfinite(t) or abs(run_.tick_t[i] - t) > SNAP_S:
-            raise ScoreError(f"--at {part.strip()}: no OBU tick there (ticks run from "
+            raise ValueError(f"--at {part.strip()}: no OBU tick there (ticks run from "
                              f"{run_.tick_t[0]:.1f} to {run_.tick_t[-1]:.1f} s)")
         out.append(float(run_.tick_t[i]))
     return out
@@ -952,13 +952,13 @@ def _times(text: str | None, run_: Run) -> list[float]:
 
 def _check_flags(args: argparse.Namespace) -> None:
     if not (args.window > 0 and math.isfinite(args.window)):
-        raise ScoreError(f"--window must be > 0, got {args.window}")
+        raise ValueError(f"--window must be > 0, got {args.window}")
     if args.max_frames < 2:
-        raise ScoreError(f"--max-frames must be >= 2, got {args.max_frames}")
+        raise ValueError(f"--max-frames must be >= 2, got {args.max_frames}")
     if args.fps is not None and not (args.fps > 0 and math.isfinite(args.fps)):
-        raise ScoreError(f"--fps must be > 0, got {args.fps}")
+        raise ValueError(f"--fps must be > 0, got {args.fps}")
     if args.mp4 and shutil.which("ffmpeg") is None:
-        raise ScoreError("--mp4 needs ffmpeg on PATH (--gif needs nothing more)")
+        raise ValueError("--mp4 needs ffmpeg on PATH (--gif needs nothing more)")
 
 
 def stills(the_run: Run, times: list[float], out: Path, window: float = 60.0) -> list[Path]:
@@ -991,7 +991,7 @@ def run(args: argparse.Namespace) -> int:
         times = _times(args.at, the_run)
         out = args.out if args.out is not None else Path(args.dir) / "plots"
         out.mkdir(parents=True, exist_ok=True)
-    except (ScoreError, ValueError, KeyError, TypeError, OSError) as err:
+    except (ValueError, KeyError, TypeError, OSError) as err:  # CaptureError too
         msg = str(err) if not isinstance(err, KeyError) else f"a capture file lacks {err}"
         print(f"captures plot: {msg}", file=sys.stderr)
         return 2

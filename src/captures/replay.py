@@ -15,13 +15,13 @@ from collections import Counter
 
 import numpy as np
 
-from captures.datasets import DatasetError, load
 from captures.progress import Progress
 from catc.apps import APPS, AppsConfig, SafetyApps
 from catc.cam import CamConfig, ContextAwareMap
 from catc.channel import bernoulli_received
 from catc.predict import NAMES, check
 from catc.replay import run_offline, temp_id
+from hil.datasets import DatasetError, load
 
 HELP = """\
 Replay trips through the Context-Aware Target Classification and the safety applications

@@ -31,15 +31,16 @@ from pathlib import Path
 
 import numpy as np
 
+from catc.bsm import MINUTE_MS, sec_mark
+from hil.capture import clock_offset, read_capture, truth_in_frame
+from hil.capture.schema import received_key, scheduled_key
+from hil.datasets import load_table
+
 HELP = """\
 Score a capture directory written by `rve run --capture DIR` and `obu run --capture DIR`:
 PTE95 overall and per RV, FCW accuracy with TP/TN/FP/FN against the FCW on the true
 states, messages sent / dropped / received, decode errors, latency from send to decision,
 and the warning events.  --json prints the same as one JSON object."""
-
-
-class ScoreError(ValueError):
-    """A capture that cannot be scored; ``str()`` is one line."""
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -48,26 +49,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("dir", type=Path, metavar="DIR", help="the shared capture directory")
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
     p.set_defaults(func=run)
-
-
-def _lines(path: Path) -> list[dict]:
-    if not path.is_file():
-        raise ScoreError(f"{path}: missing (is this a capture directory of rve and obu?)")
-    lines = path.read_text(encoding="utf-8").splitlines()
-    out = []
-    for n, line in enumerate(lines, 1):
-        try:
-            out.append(json.loads(line))
-        except json.JSONDecodeError:
-            if n < len(lines):  # only the last line of a killed daemon may be torn
-                raise ScoreError(f"{path}:{n}: not a JSON line") from None
-    return out
-
-
-def _json(path: Path) -> dict:
-    if not path.is_file():
-        raise ScoreError(f"{path}: missing (is this a capture directory of rve and obu?)")
-    return json.loads(path.read_text())
 
 
 def _ground_truth_fcw(rve_cfg: dict) -> dict[float, bool]:
@@ -84,7 +65,6 @@ def _ground_truth_fcw_of(dataset: str, trip, host, idm_host, duration) -> dict[f
     from catc.channel import ChannelConfig
     from catc.hostsim import with_synthetic_host
     from catc.replay import plan, simulate
-    from rve.run import load_table
 
     table = load_table(dataset, trip)
     if idm_host:
@@ -96,66 +76,11 @@ def _ground_truth_fcw_of(dataset: str, trip, host, idm_host, duration) -> dict[f
             for snap in simulate(the_plan, cam)}
 
 
-def read_capture(directory: Path, rx: bool = True) -> dict:
-    """The files of an RVE + OBU capture directory, checked: ``rve_cfg, obu_cfg, truth,
-    schedule, ticks, tracks, events`` and (with ``rx``) ``rx``."""
-    directory = Path(directory)
-    if not directory.is_dir():
-        raise ScoreError(f"{directory}: not a directory")
-    out = {"rve_cfg": _json(directory / "rve.config.json"),
-           "obu_cfg": _json(directory / "obu.config.json"),
-           "truth": _lines(directory / "rve.truth.jsonl"),
-           "schedule": _lines(directory / "rve.schedule.jsonl"),
-           "ticks": _lines(directory / "obu.ticks.jsonl"),
-           "tracks": _lines(directory / "obu.tracks.jsonl"),
-           "events": _lines(directory / "obu.events.jsonl")
-           if (directory / "obu.events.jsonl").is_file() else []}
-    if rx:
-        out["rx"] = _lines(directory / "obu.rx.jsonl")
-    if not out["ticks"]:
-        raise ScoreError(f"{directory}: the OBU recorded no tick")
-    if out["obu_cfg"].get("origin") is None:
-        raise ScoreError(f"{directory}: obu.config.json has no ENU origin")
-    return out
-
-
-def clock_offset(truth: list[dict], first_tick: dict, directory: Path) -> float:
-    """OBU clock − dataset time (a whole number of minutes): the host truth sample whose
-    secMark is the OBU's first tick's."""
-    matches = [r["t"] for r in truth
-               if r["host"] and round(r["t"] * 1000) % 60_000 == first_tick["sec_mark"]]
-    if not matches:
-        raise ScoreError(f"{directory}: the OBU's first tick (secMark "
-                         f"{first_tick['sec_mark']}) matches no host sample of the RVE's "
-                         "truth")
-    return first_tick["t"] - matches[0]
-
-
-def truth_in_frame(truth: list[dict], origin) -> dict[str, tuple[list[dict], np.ndarray,
-                                                                    np.ndarray, np.ndarray]]:
-    """Truth rows per vehicle id with their times and positions in the OBU's ENU frame:
-    ``id -> (rows, t, x, y)``."""
-    from catc.geo import EnuFrame
-
-    frame = EnuFrame(*origin)
-    by_vehicle: dict[str, list[dict]] = defaultdict(list)
-    for r in truth:
-        by_vehicle[r["id"]].append(r)
-    out = {}
-    for tid, rows in by_vehicle.items():
-        x, y, _ = frame.to_enu(np.array([r["lat"] for r in rows]),
-                               np.array([r["lon"] for r in rows]), 0.0)
-        out[tid] = (rows, np.array([r["t"] for r in rows]), np.atleast_1d(x),
-                    np.atleast_1d(y))
-    return out
-
-
 def score(directory: Path) -> dict:
     """Every score of a capture directory (see the module docstring)."""
     cap = read_capture(directory)
-    rve_cfg, obu_cfg, truth, schedule = (cap["rve_cfg"], cap["obu_cfg"], cap["truth"],
-                                         cap["schedule"])
-    ticks, tracks, rx, events = cap["ticks"], cap["tracks"], cap["rx"], cap["events"]
+    rve_cfg, obu_cfg, truth, schedule = cap.rve_config, cap.obu_config, cap.truth, cap.schedule
+    ticks, tracks, rx, events = cap.ticks, cap.tracks, cap.rx, cap.events
     names = {tid: v for v, tid in rve_cfg["vehicles"].items()}
     offset = clock_offset(truth, ticks[0], directory)
     truth_xy = {tid: (t, x, y)
@@ -194,19 +119,17 @@ def score(directory: Path) -> dict:
     sent = [r for r in rv_sched if not r["dropped"]]
     ok_all = [r for r in rx if r.get("channel") == "rv" and r.get("status") == "ok"]
     # the run's real vehicles, each message once (a replay attack sends some again)
-    ok = list({(r["id"], r["msgCnt"], r["sec_mark"]): r for r in ok_all
-               if r.get("id") in names}.values())
+    ok = list({received_key(r): r for r in ok_all if r.get("id") in names}.values())
     bad = Counter(r["status"] for r in rx
                   if r.get("status") not in ("ok", "rejected", "quarantined", "unticked"))
     # IEEE 1609.2 verdicts (obu run --verify): "ok" or the reason, whether the frame was
     # dropped (enforce: status "rejected") or tracked anyway (log)
     security = Counter(r["verdict"] for r in rx if r.get("verdict"))
-    send_time = {(r["id"], r["seq"] % 128, round(r["t"] * 1000) % 60_000): r["sent_unix"]
-                 for r in sent}
-    lat = [r["decided_unix"] - send_time[(r["id"], r["msgCnt"], r["sec_mark"])]
-           for r in ok if (r["id"], r["msgCnt"], r["sec_mark"]) in send_time]
+    send_time = {scheduled_key(r): r["sent_unix"] for r in sent}
+    lat = [r["decided_unix"] - send_time[received_key(r)]
+           for r in ok if received_key(r) in send_time]
     lat_ms = np.array(lat) * 1000.0
-    attacks, mbr = _attacks(schedule, rx, events, names), _mbr(directory)
+    attacks, mbr = _attacks(schedule, rx, events, names), cap.mbr
     result = {
         "pte95_m": round(float(np.percentile(all_pte, 95)), 4) if len(all_pte) else None,
         "pte_mean_m": round(float(all_pte.mean()), 4) if len(all_pte) else None,
@@ -253,18 +176,12 @@ def _phantoms(rows: dict[str, list[float]], events: list[dict], ticks: list[dict
                                  if any(w[1] not in real for w in tk["warnings"]))}
 
 
-def _mbr(directory: Path) -> list[dict] | None:
-    """The OBU's misbehavior reports (``obu run --mbd``), or None when it ran without."""
-    path = directory / "obu.mbr.jsonl"
-    return _lines(path) if path.exists() else None
-
-
 def _attacks(schedule: list[dict], rx: list[dict], events: list[dict],
              names: dict[str, str]) -> dict[str, dict]:
     """Per attack kind (``rve run --attack``): the frames the RVE sent for it, what the
     OBU accepted (tracked), rejected (by verdict) and quarantined, and the warnings raised
     on the ids it fabricated (every one a false alarm: those vehicles do not exist)."""
-    kind_of: dict[tuple, str] = {}  # (id, msgCnt, secMark) -> kind, for the rx join
+    kind_of: dict[tuple, str] = {}  # message key -> kind, for the rx join
     fabricated: dict[str, str] = {}
     out: dict[str, dict] = {}
     for r in schedule:
@@ -276,21 +193,20 @@ def _attacks(schedule: list[dict], rx: list[dict], events: list[dict],
         if r["id"] not in names:
             fabricated[r["id"]] = kind
         else:
-            kind_of[(r["id"], r["seq"] % 128, round(r["t"] * 1000) % 60_000)] = kind
+            kind_of[scheduled_key(r)] = kind
     if not out:
         return {}
     seen: set[tuple] = set()
     for r in rx:
         if r.get("channel") != "rv" or "id" not in r:
             continue
-        kind = fabricated.get(r["id"]) or kind_of.get((r["id"], r.get("msgCnt"),
-                                                       r.get("sec_mark")))
+        kind = fabricated.get(r["id"]) or kind_of.get(received_key(r))
         if kind is None:
             continue
         if r.get("status") == "quarantined":
             out[kind]["quarantined"] = out[kind].get("quarantined", 0) + 1
         elif r.get("status") == "ok":
-            key = (r["id"], r.get("msgCnt"), r.get("sec_mark"))
+            key = received_key(r)
             if kind == "replay" and key not in seen:  # the original, not the replay
                 seen.add(key)
                 continue
@@ -342,7 +258,7 @@ def _detection(out: dict, schedule: list[dict], rx: list[dict], names: dict[str,
             # dataset seconds from the attacker's first frame to the message that got it
             # reported (secMarks wrap each minute)
             "time_to_detect_s": {
-                i: round(((first_report[i] - round(first_sent[i] * 1000)) % 60_000) / 1000, 3)
+                i: round(((first_report[i] - sec_mark(first_sent[i])) % MINUTE_MS) / 1000, 3)
                 for i in hit},
         }
     return {"suspects": len(first_report), "false_suspects": false_suspects,
@@ -396,7 +312,7 @@ def table(r: dict) -> str:
 def run(args: argparse.Namespace) -> int:
     try:
         result = score(args.dir)
-    except (ScoreError, ValueError, KeyError) as err:
+    except (ValueError, KeyError) as err:  # CaptureError and DatasetError included
         print(f"captures score: {err}", file=sys.stderr)
         return 2
     if args.json:

@@ -36,7 +36,6 @@ from pathlib import Path
 
 import numpy as np
 
-from captures.datasets import DatasetError, load_files
 from captures.evaluate import csv_list
 from captures.progress import Progress
 from catc.mobility import MobilityTable
@@ -52,6 +51,7 @@ from catc.sweep import (
     pool,
     truth_fcw,
 )
+from hil.datasets import DatasetError, load_files
 
 #: The paper's PER grid (DESIGN.md, "Paper parameters").
 PAPER_PERS = (0, 10, 20, 30, 40, 50, 60, 70, 80, 90, 95)

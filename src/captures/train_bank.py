@@ -13,11 +13,11 @@ from pathlib import Path
 
 import numpy as np
 
-from captures.datasets import DatasetError, load_files
 from captures.progress import Progress
 from catc import __version__
 from catc.predict.bank import KernelBank
 from catc.predict.training import TrainConfig, cluster, persistency, train
+from hil.datasets import DatasetError, load_files
 
 HELP = """\
 Walk the trips of the --dataset specs with the paper's Algorithm 1 (TW samples, PTE_th),

@@ -14,10 +14,10 @@ from dataclasses import asdict
 from functools import partial
 from pathlib import Path
 
-from captures.datasets import DatasetError, load_files
 from captures.evaluate import csv_list
 from captures.progress import Progress
 from catc import __version__
+from hil.datasets import DatasetError, load_files
 
 HELP = """\
 Train the neural baselines of the paper (predictors ae, ae-d, lstm, lstm-d) on the trips

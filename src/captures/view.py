@@ -14,53 +14,50 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import signal
 import sys
 from pathlib import Path
+
+from hil.capture import clock_offset, read_capture, read_json, read_lines, schema, truth_in_frame
+from hil.config import web_address
 
 DEFAULT_PORT = 8750
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from obu.run import _web_address
-
     p = sub.add_parser("view", help="the live view's page over a finished capture",
                        description=__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("dir", type=Path, metavar="DIR", help="capture directory (obu run --capture)")
-    p.add_argument("--web", type=_web_address, default=("127.0.0.1", DEFAULT_PORT),
+    p.add_argument("--web", type=web_address, default=("127.0.0.1", DEFAULT_PORT),
                    metavar="[HOST:]PORT", help=f"where to serve (default 127.0.0.1:{DEFAULT_PORT})")
     p.set_defaults(func=run)
 
 
 def load(directory: Path):
-    """The capture as an :class:`obu.web.Replay` (ValueError with the reason)."""
-    from captures.score import ScoreError, _lines, clock_offset, read_capture, truth_in_frame
+    """The capture as an :class:`obu.web.Replay` (ValueError with the reason): the OBU's
+    files, and the RVE's truth where the directory has it."""
     from obu.web import Replay
 
     directory = Path(directory)
-    ticks_path = directory / "obu.ticks.jsonl"
+    ticks_path = directory / schema.OBU_TICKS
     if not ticks_path.is_file():
-        raise ValueError(f"{directory}: no obu.ticks.jsonl (not an obu run --capture)")
+        raise ValueError(f"{directory}: no {schema.OBU_TICKS} (not an obu run --capture)")
     truth = None
     counters = {}
-    if (directory / "obu.counters.json").is_file():
-        counters = json.loads((directory / "obu.counters.json").read_text())
-    if (directory / "rve.truth.jsonl").is_file():
-        try:
-            cap = read_capture(directory, rx=False)
-        except ScoreError as err:
-            raise ValueError(str(err)) from None
-        offset = clock_offset(cap["truth"], cap["ticks"][0], directory)
+    if (directory / schema.OBU_COUNTERS).is_file():
+        counters = read_json(directory / schema.OBU_COUNTERS)
+    if (directory / schema.RVE_TRUTH).is_file():
+        cap = read_capture(directory, rx=False)
+        offset = clock_offset(cap.truth, cap.ticks[0], directory)
         truth = {tid: (t + offset, x, y) for tid, (_, t, x, y)
-                 in truth_in_frame(cap["truth"], cap["obu_cfg"]["origin"]).items()}
-        ticks, tracks, events = cap["ticks"], cap["tracks"], cap["events"]
+                 in truth_in_frame(cap.truth, cap.obu_config["origin"]).items()}
+        ticks, tracks, events = cap.ticks, cap.tracks, cap.events
     else:
-        ticks = _lines(ticks_path)
-        tracks = _lines(directory / "obu.tracks.jsonl")
-        ev = directory / "obu.events.jsonl"
-        events = _lines(ev) if ev.is_file() else []
+        ticks = read_lines(ticks_path)
+        tracks = read_lines(directory / schema.OBU_TRACKS)
+        ev = directory / schema.OBU_EVENTS
+        events = read_lines(ev) if ev.is_file() else []
     if not ticks:
         raise ValueError(f"{directory}: the OBU recorded no tick")
     return Replay(ticks, tracks, events, truth, counters)

@@ -13,7 +13,7 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
-__all__ = ["ConfigError", "address", "merge", "run_daemon"]
+__all__ = ["ConfigError", "address", "merge", "percent", "run_daemon", "web_address"]
 
 
 def address(text: str) -> tuple[str, int]:
@@ -23,6 +23,19 @@ def address(text: str) -> tuple[str, int]:
     if not sep or not port.isdigit() or not 0 <= int(port) < 65536:
         raise argparse.ArgumentTypeError(f"not HOST:PORT: {text!r}")
     return host.strip("[]") or "127.0.0.1", int(port)
+
+
+def web_address(text: str) -> tuple[str, int]:
+    """``PORT`` (on 127.0.0.1) or ``HOST:PORT``: where a web page is served."""
+    return address(text if ":" in text else f"127.0.0.1:{text}")
+
+
+def percent(text: str) -> float:
+    """A percentage from 0 to 100 (the argparse ``type`` of ``--per``)."""
+    value = float(text)
+    if not 0.0 <= value <= 100.0:
+        raise argparse.ArgumentTypeError(f"a percentage from 0 to 100, got {text}")
+    return value
 
 
 class ConfigError(ValueError):

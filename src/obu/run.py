@@ -64,7 +64,7 @@ from catc.j2735 import decode_frame, open_envelope
 from catc.predict import NAMES, check
 from catc.replay import split_due
 from hil.capture import JsonLines, versions
-from hil.config import address
+from hil.config import address, web_address
 from hil.gcpolicy import GcPolicy
 
 __all__ = ["DEFAULTS", "add_arguments", "run"]
@@ -79,11 +79,6 @@ DEFAULTS = {
 
 #: The host's BSM period: a step slower than this misses its deadline.
 TICK_S = 0.1
-
-
-def _web_address(text: str) -> tuple[str, int]:
-    """``PORT`` (on 127.0.0.1) or ``HOST:PORT``."""
-    return address(text if ":" in text else f"127.0.0.1:{text}")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -116,7 +111,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--trust", metavar="PATH",
                    help="trust store for --verify: a PKI directory (rve pki init: its root "
                         "is trusted, its AA known) or a root certificate .oer file")
-    p.add_argument("--web", type=_web_address, metavar="[HOST:]PORT",
+    p.add_argument("--web", type=web_address, metavar="[HOST:]PORT",
                    help="serve the live view (a web page of the map, /api/state) here; "
                         "127.0.0.1 unless a host is named; off by default")
     p.add_argument("--mbd", action="store_true", default=None,

@@ -52,16 +52,16 @@ def _mix(text: str) -> dict[str, float]:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from rve.run import _address, _percent
+    from hil.config import address, percent
 
     p.add_argument("--dataset", default="scenario:highway-braking",
                    help="the RVE's dataset (copies are of its frames)")
     p.add_argument("--trip", help="the RVE's trip")
-    p.add_argument("--to", type=_address, required=True, help="UDP HOST:PORT to flood")
+    p.add_argument("--to", type=address, required=True, help="UDP HOST:PORT to flood")
     p.add_argument("--rate", type=float, default=2000.0, help="datagrams/s (default 2000)")
     p.add_argument("--duration", type=float, default=10.0, help="seconds (default 10)")
     p.add_argument("--speed", type=float, default=1.0, help="the RVE's replay speed")
-    p.add_argument("--per", type=_percent, default=0.0, help="the RVE's PER, %%")
+    p.add_argument("--per", type=percent, default=0.0, help="the RVE's PER, %%")
     p.add_argument("--seed", type=int, default=0, help="the RVE's seed")
     p.add_argument("--flood-seed", type=int, default=1, help="seed of the garbage")
     p.add_argument("--lag", type=float, default=4.0,
@@ -76,7 +76,7 @@ def _frames(args: argparse.Namespace) -> tuple[list[float], list[bytes]]:
     """(data time from the first host sample, frame) of every frame the RVE sends."""
     from catc.j2735 import encode_frame
     from catc.replay import plan
-    from rve.run import load_table
+    from hil.datasets import load_table
 
     table = load_table(args.dataset, args.trip)
     the_plan = plan(table, ChannelConfig(per=args.per / 100.0), args.seed)

@@ -34,7 +34,6 @@ import signal
 import sys
 import time
 from collections import deque
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -44,7 +43,8 @@ from catc.j2735 import encode_frame
 from catc.j2735.ieee1609 import ETHERTYPE_WSMP, wrap_unsecured, wrap_wsmp
 from catc.replay import Plan, plan, temp_id
 from hil.capture import JsonLines, PcapngWriter, can_log, ethernet, udp_packet, versions
-from hil.config import address
+from hil.config import address, percent
+from hil.datasets import load_table
 from hil.pacing import Pacer
 
 __all__ = ["DEFAULTS", "add_arguments", "run"]
@@ -58,20 +58,6 @@ DEFAULTS = {
     "can_interface": "virtual", "can_channel": None, "can_fd": False, "progress": True,
     "idm_host": None, "sign": None, "framing": None, "attack": None,
 }
-
-
-def _address(text: str) -> tuple[str, int]:
-    host, sep, port = text.rpartition(":")
-    if not sep or not port.isdigit() or not 0 < int(port) < 65536:
-        raise argparse.ArgumentTypeError(f"not HOST:PORT: {text!r}")
-    return host.strip("[]") or "127.0.0.1", int(port)
-
-
-def _percent(text: str) -> float:
-    value = float(text)
-    if not 0.0 <= value <= 100.0:
-        raise argparse.ArgumentTypeError(f"a percentage from 0 to 100, got {text}")
-    return value
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -89,7 +75,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "(default 127.0.0.1:4500)")
     p.add_argument("--host-to", type=address, help="UDP HOST:PORT of the host "
                    "vehicle's frames (default 127.0.0.1:4501)")
-    p.add_argument("--per", type=_percent, help="packet error rate, %% (default 0)")
+    p.add_argument("--per", type=percent, help="packet error rate, %% (default 0)")
     p.add_argument("--burst", type=float, help="mean burst length in messages; 1 = "
                    "independent losses (default 1)")
     p.add_argument("--rate", type=float, help="transmission rate, 1-10 Hz (default 10)")
@@ -125,29 +111,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--can-fd", action="store_true", default=None, help="CAN FD frames")
     p.add_argument("--no-progress", dest="progress", action="store_false", default=None,
                    help="no progress line on stderr")
-
-
-def load_table(spec: str, trip: str | None):
-    """The trip to replay (one-line ValueError when it cannot be loaded)."""
-    from captures.datasets import DatasetError, load
-
-    if spec.startswith("scenario:"):
-        name = spec.split(":", 1)[1]
-        path = resources.files("rve").joinpath("scenarios", f"{name}.fcd.xml")
-        if not path.is_file():
-            raise ValueError(f"unknown scenario {name!r} (see rve scenario --help)")
-        spec = f"sumo:{path}"
-    try:
-        tables = load(spec)
-    except DatasetError as err:
-        raise ValueError(str(err)) from None
-    if trip is None:
-        return tables[0]
-    for t in tables:
-        if t.name == trip:
-            return t
-    raise ValueError(f"dataset {spec!r} has no trip {trip!r}; trips: "
-                     f"{', '.join(t.name for t in tables[:10])}")
 
 
 def _can_channel(args: argparse.Namespace) -> str:

@@ -1,6 +1,6 @@
 """``rve scenario``: built-in traffic scenarios, generated with Eclipse SUMO.
 
-Each scenario is a road network (plain SUMO node and edge XML in ``rve/scenarios``,
+Each scenario is a road network (plain SUMO node and edge XML in ``hil/scenarios``,
 georeferenced with a ``<location>`` element: UTM zone 33N, net (0, 0) at 46.890000 N
 16.840000 E, at the ZalaZONE proving ground in Zalaegerszeg, Hungary; the roads are
 synthetic, not the track's layout), a seeded route file written here, and for the
@@ -96,7 +96,7 @@ class Scenario:
 
     name: str
     summary: str  # a few words for --help
-    network: str  # <network>.nod.xml / <network>.edg.xml in rve/scenarios
+    network: str  # <network>.nod.xml / <network>.edg.xml in hil/scenarios
     duration: float  # s, the default length
     routes: Callable[[np.random.Generator], str]  # the seeded .rou.xml text
     #: Makes the run's TraCI script: called before every step with (connection, time).
@@ -424,7 +424,7 @@ def generate(name: str = DEFAULT, seed: int = 0, duration: float | None = None) 
         raise ValueError(f"duration must be 0.1 to 3600 s, got {duration:g}")
     home = sumo_home()
     env = _env(home)
-    data = resources.files("rve").joinpath("scenarios")
+    data = resources.files("hil").joinpath("scenarios")
     with tempfile.TemporaryDirectory(prefix="rve-scenario-") as tmpdir:
         tmp = Path(tmpdir)
         for ext in ("nod.xml", "edg.xml"):

@@ -1,19 +1,32 @@
-"""Dataset specs on the command line (DESIGN.md): ``PATH`` (kind detected from the content)
-or ``KIND:PATH``.  A directory means every file in it that parses.  This is the one place
-that reads dataset files; the parsers in :mod:`catc.datasets` work on their text, or on
-their bytes when the file is not text (an OBU ``.bin`` log) or the kind is ``ode``.
+"""Dataset specs on the command line (DESIGN.md): ``PATH`` (kind detected from the content),
+``KIND:PATH``, or ``scenario:NAME`` (a built-in scenario, ``hil/scenarios``).  A directory
+means every file in it that parses.  This is the one place that reads dataset files, for
+``rve run`` and for every ``captures`` command; the parsers in :mod:`catc.datasets` work on
+their text, or on their bytes when the file is not text (an OBU ``.bin`` log) or the kind
+is ``ode``.
 """
 
 from __future__ import annotations
 
+from importlib import resources
 from pathlib import Path
 
 from catc.datasets import KINDS, detect_kind, parse
 from catc.mobility import MobilityTable
 
+__all__ = ["DatasetError", "load", "load_files", "load_table", "scenario_file"]
+
 
 class DatasetError(ValueError):
     """A dataset spec that cannot be loaded; ``str()`` is a one-line message."""
+
+
+def scenario_file(name: str) -> Path:
+    """The shipped FCD XML of built-in scenario ``name`` (``rve scenario`` makes them)."""
+    path = resources.files("hil").joinpath("scenarios", f"{name}.fcd.xml")
+    if not path.is_file():
+        raise DatasetError(f"unknown scenario {name!r} (see rve scenario --help)")
+    return Path(str(path))
 
 
 def _split(spec: str) -> tuple[str | None, Path]:
@@ -67,3 +80,18 @@ def load_files(spec: str) -> list[tuple[Path, list[MobilityTable]]]:
     if not any(tables for _, tables in out):
         raise DatasetError(f"dataset {spec!r}: no trips found")
     return out
+
+
+def load_table(spec: str, trip: str | None) -> MobilityTable:
+    """The one trip of ``spec`` that ``rve run`` replays (``scenario:NAME`` too): ``trip``
+    by name, or the first.  DatasetError (one line) when it cannot be loaded."""
+    if spec.startswith("scenario:"):
+        spec = f"sumo:{scenario_file(spec.split(':', 1)[1])}"
+    tables = load(spec)
+    if trip is None:
+        return tables[0]
+    for t in tables:
+        if t.name == trip:
+            return t
+    raise DatasetError(f"dataset {spec!r} has no trip {trip!r}; trips: "
+                       f"{', '.join(t.name for t in tables[:10])}")

@@ -1,0 +1,32 @@
+"""Capture files: what the daemons record, and the one reader of it.
+
+* :mod:`hil.capture.schema`: the files of a capture directory, a function that builds each
+  record, and the key that joins the RVE's records with the OBU's.
+* :mod:`hil.capture.writers`: append-only writers (JSON lines, pcapng, CAN logs), flushed
+  once per tick, so a killed daemon keeps all but its last tick.
+* :mod:`hil.capture.reader`: a capture directory read back and checked.
+"""
+
+from hil.capture import schema
+from hil.capture.reader import (
+    Capture,
+    CaptureError,
+    clock_offset,
+    read_capture,
+    read_json,
+    read_lines,
+    truth_in_frame,
+)
+from hil.capture.writers import (
+    CanLogs,
+    JsonLines,
+    PcapngWriter,
+    can_log,
+    ethernet,
+    udp_packet,
+    versions,
+)
+
+__all__ = ["CanLogs", "Capture", "CaptureError", "JsonLines", "PcapngWriter", "can_log",
+           "clock_offset", "ethernet", "read_capture", "read_json", "read_lines", "schema",
+           "truth_in_frame", "udp_packet", "versions"]

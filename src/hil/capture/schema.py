@@ -1,0 +1,212 @@
+"""The capture directory's files, their records, and the key that joins them.
+
+The RVE and the OBU may share one capture directory; each writes only its own files.  Every
+record that goes into a file is built by one function here, so a field is added in one
+place, and the readers (:mod:`hil.capture.reader`, ``captures score``, ``view``, ``plot``)
+read what these build.  JSON-lines files are append-only and flushed once per tick
+(:class:`hil.capture.writers.JsonLines`); a killed daemon loses at most its last line.
+
+=======================  ======  ==============================================================
+file                     writer  one record per ...
+=======================  ======  ==============================================================
+``rve.config.json``      RVE     run: settings, versions, dataset, host, vehicle ids, channel
+``rve.truth.jsonl``      RVE     vehicle and 10 Hz sample: the true state (:func:`truth`)
+``rve.schedule.jsonl``   RVE     scheduled message: the channel's decision, and when it was
+                                 sent (:func:`scheduled`)
+``rve.frames.pcapng``    RVE     frame sent over UDP (or WSMP in Ethernet II)
+``rve.frames.asc/.log``  RVE     CAN frame sent (ASC and candump log)
+``obu.config.json``      OBU     run: settings, versions, ENU origin (rewritten once it is known)
+``obu.counters.json``    OBU     run: every counter (rewritten every second and at the end)
+``obu.rx.jsonl``         OBU     frame received, with what became of it (:func:`received`)
+``obu.ticks.jsonl``      OBU     tick: host state, step time, warnings (:func:`tick`)
+``obu.tracks.jsonl``     OBU     tracked RV at every tick (:func:`track_rows`)
+``obu.events.jsonl``     OBU     warning start or end (:func:`event`)
+``obu.mbr.jsonl``        OBU     misbehavior detection, with ``obu run --mbd`` (:func:`report`)
+=======================  ======  ==============================================================
+
+The join key.  A message is named on both sides by its sender's TemporaryID (8 hex digits),
+its msgCnt and its secMark (:func:`message_key`).  The RVE's schedule gives the sequence
+number and dataset time from which those two were stamped (:func:`catc.bsm.msg_cnt`,
+:func:`catc.bsm.sec_mark`: :func:`scheduled_key`); the OBU's rx records give the decoded
+values (:func:`received_key`).  The key repeats after 128 messages and a minute, far longer
+than any latency.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from catc.bsm import msg_cnt, sec_mark
+
+__all__ = [
+    "OBU_CONFIG", "OBU_COUNTERS", "OBU_EVENTS", "OBU_MBR", "OBU_RX", "OBU_TICKS",
+    "OBU_TRACKS", "RVE_CAN_STEM", "RVE_CONFIG", "RVE_PCAPNG", "RVE_SCHEDULE", "RVE_TRUTH",
+    "event", "hex_id", "message_key", "received", "received_key", "report", "scheduled",
+    "scheduled_key", "sent", "settings", "tick", "track_rows", "truth",
+]
+
+RVE_CONFIG = "rve.config.json"
+RVE_TRUTH = "rve.truth.jsonl"
+RVE_SCHEDULE = "rve.schedule.jsonl"
+RVE_PCAPNG = "rve.frames.pcapng"
+#: ``rve.frames.asc`` and ``rve.frames.log``
+RVE_CAN_STEM = "rve.frames"
+OBU_CONFIG = "obu.config.json"
+OBU_COUNTERS = "obu.counters.json"
+OBU_RX = "obu.rx.jsonl"
+OBU_TICKS = "obu.ticks.jsonl"
+OBU_TRACKS = "obu.tracks.jsonl"
+OBU_EVENTS = "obu.events.jsonl"
+OBU_MBR = "obu.mbr.jsonl"
+
+MessageKey = tuple[str, int, int]
+
+
+def hex_id(temp_id: int) -> str:
+    """A TemporaryID as the captures write it: 8 upper-case hex digits."""
+    return f"{temp_id:08X}"
+
+
+def message_key(temp_id: str, count: int, mark: int) -> MessageKey:
+    """The name of one message in every capture file: (TemporaryID hex, msgCnt, secMark)."""
+    return (temp_id, count, mark)
+
+
+def scheduled_key(record: dict) -> MessageKey:
+    """:func:`message_key` of an ``rve.schedule.jsonl`` record (stamped from seq and t)."""
+    return (record["id"], msg_cnt(record["seq"]), sec_mark(record["t"]))
+
+
+def received_key(record: dict) -> MessageKey:
+    """:func:`message_key` of an ``obu.rx.jsonl`` record (the decoded msgCnt and secMark;
+    None where the frame did not decode)."""
+    return (record.get("id"), record.get("msgCnt"), record.get("sec_mark"))
+
+
+def settings(args: Any) -> dict[str, Any]:
+    """A daemon's settings for its config file: every parsed flag (tuples as lists)."""
+    return {k: (list(v) if isinstance(v, tuple) else v)
+            for k, v in vars(args).items() if k not in ("func", "parser")}
+
+
+# --- the RVE's records ------------------------------------------------------------------
+
+def truth(vehicle: str, temp_id: int, index: int, t: float, lat: float, lon: float,
+          x: float, y: float, speed: float, heading: float, accel: float, yaw_rate: float,
+          host: bool) -> dict[str, Any]:
+    """One true sample of a vehicle (``rve.truth.jsonl``): dataset time ``t`` (s),
+    WGS-84 degrees, the dataset's ENU metres, m/s, degrees from north, m/s², deg/s."""
+    return {"vehicle": vehicle, "id": hex_id(temp_id), "index": index, "t": t, "lat": lat,
+            "lon": lon, "x": x, "y": y, "speed": speed, "heading": heading, "accel": accel,
+            "yaw_rate": yaw_rate, "host": host}
+
+
+def scheduled(vehicle: str, temp_id: int, channel: str, index: int, seq: int, t: float,
+              dropped: bool, cause: str, delay: float | None,
+              attack: str | None = None, **extra: Any) -> dict[str, Any]:
+    """One scheduled message (``rve.schedule.jsonl``): the vehicle's sample ``index``
+    (-1 for an attack's own frame) sent as its ``seq``-th message generated at dataset
+    time ``t``; the channel's decision (``dropped``, ``cause``, ``delay`` s); the attack
+    that made or changed it, and ``extra`` (an attack's ``signer``).  :func:`sent` adds
+    what happened on the wire."""
+    record = {"vehicle": vehicle, "id": hex_id(temp_id), "channel": channel, "index": index,
+              "seq": seq, "t": t, "dropped": dropped, "cause": cause, "delay": delay}
+    if attack is not None:
+        record["attack"] = attack
+    record.update(extra)
+    return record
+
+
+def sent(record: dict[str, Any], sent_unix: float, late_s: float, octets: int
+         ) -> dict[str, Any]:
+    """A :func:`scheduled` record once its frame went out: wall-clock send time, lateness
+    against its deadline (ms, 4 decimals) and the frame's size."""
+    record.update(sent_unix=sent_unix, late_ms=round(late_s * 1000.0, 4), octets=octets)
+    return record
+
+
+# --- the OBU's records ------------------------------------------------------------------
+
+def received(rx_unix: float, channel: str, data: bytes, status: str, *,
+             sender: tuple[int, int, int | None] | None = None, verdict: str | None = None,
+             tick: float | None = None, decided_unix: float | None = None
+             ) -> dict[str, Any]:
+    """One received frame (``obu.rx.jsonl``) and what became of it: ``status`` is ``ok``
+    (stepped at ``tick``, decided at ``decided_unix``), ``unticked`` (received after the
+    last host frame), ``rejected`` (failed IEEE 1609.2 verification under enforce),
+    ``quarantined`` (its sender is in misbehavior quarantine) or the decode error's reason.
+    ``sender`` is what the frame says of itself, (TemporaryID, msgCnt, secMark), where it
+    decodes; ``verdict`` the 1609.2 verdict where frames are verified.  The frame's octets
+    are kept in hex, so ``captures decode`` can decode the capture again."""
+    record: dict[str, Any] = {"rx_unix": rx_unix, "channel": channel}
+    if sender is not None:
+        record.update(id=hex_id(sender[0]), msgCnt=sender[1], sec_mark=sender[2])
+    record["status"] = status
+    if verdict is not None:
+        record["verdict"] = verdict
+    if tick is not None:
+        record.update(tick=tick, decided_unix=decided_unix)
+    record.update(octets=len(data), hex=data.hex())
+    return record
+
+
+def _finite(x: float, digits: int) -> float | None:
+    return round(x, digits) if x == x else None
+
+
+def tick(snap: Any, host_sec_mark: int, step_ms: float, decided_unix: float
+         ) -> dict[str, Any]:
+    """One OBU tick (``obu.ticks.jsonl``) of :class:`catc.cam.MapSnapshot` ``snap``: its
+    time on the host's secMark clock, the host's ENU position, speed and heading, how many
+    RVs it tracked, the step's CPU time, when it was decided, and every warning that holds
+    as ``[app, RV id, range m, threshold m or None, side]``."""
+    return {
+        "t": snap.t, "sec_mark": host_sec_mark,
+        "host": [round(snap.host.x, 4), round(snap.host.y, 4)],
+        "host_speed": round(snap.host.speed, 3), "host_heading": round(snap.host.heading, 3),
+        "tracked": len(snap), "step_ms": round(step_ms, 3), "decided_unix": decided_unix,
+        "warnings": [[w.app, hex_id(w.rv_id), round(w.range_m, 3),
+                      _finite(w.threshold_m, 3), w.side] for w in snap.warnings]}
+
+
+def track_rows(snap: Any, host_sec_mark: int) -> list[dict[str, Any]]:
+    """Every tracked RV of ``snap`` (``obu.tracks.jsonl``, and the live view's rows): the
+    estimate (ENU m, m/s, degrees), where it came from (``source``: the predictor or
+    ``bsm``), its age and freshness, lane, zone now and at the prediction horizon
+    (``[ahead, lateral code, direction code]``, :mod:`catc.classify`), and the path-frame
+    offsets ``s``, ``d``."""
+    z, pz = snap.zone, snap.predicted_zone
+    rows = []
+    for i in range(len(snap)):
+        rows.append({
+            "t": snap.t, "sec_mark": host_sec_mark, "id": hex_id(int(snap.ids[i])),
+            "x": round(float(snap.x[i]), 7), "y": round(float(snap.y[i]), 7),
+            "speed": round(float(snap.speed[i]), 3), "heading": round(float(snap.heading[i]), 3),
+            "source": snap.source[i], "age": round(float(snap.age[i]), 3),
+            "fresh": bool(snap.fresh[i]), "lane": int(snap.lane[i]),
+            "zone": [bool(z.ahead[i]), int(z.lateral[i]), int(z.direction[i])],
+            "s": round(float(z.s[i]), 3), "d": round(float(z.d[i]), 3),
+            "predicted_x": round(float(snap.pred_x[i]), 7),
+            "predicted_y": round(float(snap.pred_y[i]), 7),
+            "predicted_zone": [bool(pz.ahead[i]), int(pz.lateral[i]), int(pz.direction[i])]})
+    return rows
+
+
+def event(e: Any) -> dict[str, Any]:
+    """A warning's start or end (``obu.events.jsonl``, and the OBU's stdout): the app, the
+    RV, the time it happened and the time the warning started."""
+    return {"app": e.app, "kind": e.kind, "rv": hex_id(int(e.rv_id)),
+            "t": e.t_start if e.kind == "start" else e.t_end, "t_start": e.t_start}
+
+
+def report(t_unix: float, t: float, reporter: int | None, detection: Any, bsm: Any,
+           data: bytes) -> dict[str, Any]:
+    """A misbehavior report (``obu.mbr.jsonl``): when (wall clock, host clock), who
+    reported (the host's TemporaryID), the :class:`catc.mbd.Detection` and the message
+    that raised it."""
+    d = detection
+    return {"t_unix": t_unix, "t": t, "reporter": None if reporter is None else hex_id(reporter),
+            "suspect": hex_id(d.suspect), "check": d.check, "score": round(d.score, 4),
+            "evidence": d.evidence, "other": None if d.other is None else hex_id(d.other),
+            "msgCnt": bsm.msg_cnt, "sec_mark": bsm.sec_mark, "hex": data.hex()}
+

@@ -66,24 +66,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from construct import (
-    Array,
-    Byte,
-    Bytes,
-    Computed,
-    Const,
-    Construct,
-    ConstructError,
-    Error,
-    GreedyBytes,
-    Prefixed,
-    StreamError,
-    Struct,
-    Switch,
-    this,
-)
-from construct.core import stream_read, stream_write
-
 from catc.errors import DecodeError, EncodeError
 
 PROTOCOL_VERSION = 3
@@ -104,38 +86,10 @@ _POINT_FORMS = ("x-only", "fill", "compressed-y-0", "compressed-y-1", "uncompres
 # Duration CHOICE: microseconds, milliseconds, then seconds per unit of
 # seconds, minutes, hours, sixtyHours, years (a year is 31 556 952 s there).
 _UNIT_SECONDS = (None, None, 1, 60, 3600, 216_000, 31_556_952)
-
-
-class _OerLength(Construct):
-    """X.696 §8.6 length determinant (short form below 128, else ``0x80 | n`` + n octets)."""
-
-    def _parse(self, stream, context, path):  # type: ignore[no-untyped-def]
-        first = stream_read(stream, 1, path)[0]
-        if first < 0x80:
-            return first
-        n = first & 0x7F
-        if not 1 <= n <= 4:
-            raise DecodeError("garbage", f"1609.2 length determinant with {n} length octets")
-        return int.from_bytes(stream_read(stream, n, path), "big")
-
-    def _build(self, obj, stream, context, path):  # type: ignore[no-untyped-def]
-        octets = _length_octets(obj)
-        stream_write(stream, octets, len(octets), path)
-        return obj
-
-
-_LENGTH = _OerLength()
-_OPAQUE = Prefixed(_LENGTH, GreedyBytes)
-_HASHED_DATA = Struct(  # CHOICE: sha256 in the root, the rest are extensions (open types)
-    "tag" / Byte,
-    "value" / Switch(this.tag, {0x80: Bytes(32), 0x81: _OPAQUE, 0x82: _OPAQUE}, default=Error),
-)
-_EXTENSION_ADDITIONS = Struct(  # X.696 §16.4: presence bitmap, then one open type per bit set
-    "bitmap" / _OPAQUE,
-    "count" / Computed(lambda ctx: sum(bin(b).count("1") for b in ctx.bitmap[1:])),
-    "values" / Array(this.count, _OPAQUE),
-)
-_UNSECURED_DATA = Struct(Const(bytes([PROTOCOL_VERSION, _UNSECURED])), "data" / _OPAQUE)
+_UNSECURED_HEAD = bytes([PROTOCOL_VERSION, _UNSECURED])
+# What an unknown HashedData alternative is reported with (the message of the
+# construct-based parser this replaced, kept octet for octet).
+_NO_ALTERNATIVE = "Error in path (parsing) -> value\nError field was activated during parsing"
 
 
 @dataclass(frozen=True)
@@ -208,15 +162,6 @@ class Unwrapped:
 # ------------------------------------------------------------------------------------------
 
 
-def _read(con: Construct, stream: io.BytesIO, what: str) -> Any:
-    try:
-        return con.parse_stream(stream)
-    except StreamError:
-        raise DecodeError("truncated", f"1609.2 {what}: input ends early") from None
-    except ConstructError as err:
-        raise DecodeError("garbage", f"1609.2 {what}: {err}") from None
-
-
 def _take(stream: io.BytesIO, n: int, what: str) -> bytes:
     octets = stream.read(n)  # BytesIO.read never allocates more than what is left
     if len(octets) != n:
@@ -253,7 +198,7 @@ def _enum(stream: io.BytesIO, what: str) -> int:
 
 
 def _length(stream: io.BytesIO, what: str) -> int:
-    """X.696 §8.6 length determinant, as :class:`_OerLength` (without construct's cost)."""
+    """X.696 §8.6 length determinant (short form below 128, else ``0x80 | n`` + n octets)."""
     first = _take(stream, 1, what)[0]
     if first < 0x80:
         return first
@@ -296,7 +241,13 @@ def _signed_int(stream: io.BytesIO, what: str) -> int:
 
 
 def _extensions(stream: io.BytesIO, what: str) -> None:
-    _read(_EXTENSION_ADDITIONS, stream, f"{what} extensions")
+    """The extension additions of an extensible SEQUENCE (X.696 §16.4): a presence bitmap
+    (an OCTET STRING whose first octet counts the unused bits), then one open type per
+    bit set, all skipped."""
+    what = f"{what} extensions"
+    bitmap = _octets(stream, what)
+    for _ in range(sum(bin(b).count("1") for b in bitmap[1:])):
+        _octets(stream, what)
 
 
 def _length_octets(n: int) -> bytes:
@@ -733,6 +684,19 @@ def build_certificate(tbs: bytes, *, issuer_digest: bytes | None, signature: byt
 # ------------------------------------------------------------------------------------------
 
 
+def _skip_hashed_data(stream: io.BytesIO) -> None:
+    """``extDataHash``: ``HashedData``, an extensible CHOICE with ``sha256HashedData``
+    (32 octets) in the root; the later alternatives are open types."""
+    what = "extDataHash"
+    tag = _take(stream, 1, what)[0]
+    if tag == 0x80:
+        _take(stream, 32, what)
+    elif tag in (0x81, 0x82):
+        _octets(stream, what)
+    else:
+        raise DecodeError("garbage", f"1609.2 {what}: {_NO_ALTERNATIVE}")
+
+
 def _header_info(stream: io.BytesIO) -> tuple[int, int | None, int | None]:
     """``HeaderInfo`` (§6.3.9): (psid, generationTime, expiryTime); the rest is skipped."""
     what = "headerInfo"
@@ -830,7 +794,7 @@ def unwrap(data: bytes) -> Unwrapped:
     inner: Unwrapped | None = None
     for hash_index, tbs_start, preamble in reversed(layers):  # innermost layer first
         if preamble & 0x20:
-            _read(_HASHED_DATA, stream, "extDataHash")
+            _skip_hashed_data(stream)
         if preamble & 0x80:
             _extensions(stream, "SignedDataPayload")
         psid, generation, expiry = _header_info(stream)
@@ -853,7 +817,7 @@ def unwrap(data: bytes) -> Unwrapped:
 
 def wrap_unsecured(frame: bytes) -> bytes:
     """Wrap ``frame`` in an unsecured ``Ieee1609Dot2Data`` (version 3, ``unsecuredData``)."""
-    return _UNSECURED_DATA.build({"data": bytes(frame)})
+    return _UNSECURED_HEAD + _enc_octets(bytes(frame))
 
 
 def tbs_data(frame: bytes, psid: int, generation_time_us: int) -> bytes:

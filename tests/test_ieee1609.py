@@ -6,6 +6,8 @@ import hashlib
 import json
 import re
 import struct
+import subprocess
+import sys
 from functools import cache
 from typing import Any
 
@@ -573,3 +575,58 @@ def test_random_bytes_into_unwrap_wsmp(data: bytes) -> None:
     except DecodeError:
         return
     assert isinstance(payload, bytes) and psid >= 0
+
+
+# --------------------------------------------------------------------------------------------
+# Open types and extension additions (X.696 §16.4), and the codec/service split
+# --------------------------------------------------------------------------------------------
+
+
+def _with_payload_tail(preamble: int, tail: bytes) -> bytes:
+    """SignedData whose SignedDataPayload has ``preamble`` and ``tail`` after its data."""
+    return (b"\x03\x81\x00" + bytes([preamble]) + wrap_unsecured(FRAME) + tail
+            + b"\x00\x01\x20" + b"\x80" + DIGEST8 + b"\x80\x80" + SIG)
+
+
+@pytest.mark.parametrize("ext_hash", [b"\x80" + bytes(32), b"\x81\x03abc", b"\x82\x00"])
+def test_ext_data_hash_alternatives_are_skipped(ext_hash: bytes) -> None:
+    u = unwrap(_with_payload_tail(0x60, ext_hash))
+    assert (u.frame, u.psid) == (FRAME, 0x20)
+
+
+@pytest.mark.parametrize(("ext_hash", "message"), [
+    (b"\x83", "garbage: 1609.2 extDataHash: Error in path (parsing) -> value\n"
+              "Error field was activated during parsing"),
+    (b"\x81\x85", "garbage: 1609.2 length determinant with 5 length octets"),
+])
+def test_ext_data_hash_errors(ext_hash: bytes, message: str) -> None:
+    with pytest.raises(DecodeError) as err:
+        unwrap(_with_payload_tail(0x60, ext_hash))
+    assert str(err.value) == message
+
+
+def test_ext_data_hash_cut_short() -> None:
+    data = _with_payload_tail(0x60, b"")[:-78]  # ends where the extDataHash starts
+    with pytest.raises(DecodeError) as err:
+        unwrap(data)
+    assert str(err.value) == "truncated: 1609.2 extDataHash: input ends early"
+
+
+def test_extension_additions_are_skipped_as_open_types() -> None:
+    additions = b"\x02\x06\xc0" + b"\x01a" + b"\x02bc"  # bitmap: 2 bits used, both set
+    u = unwrap(_with_payload_tail(0xC0, additions))
+    assert (u.frame, u.psid) == (FRAME, 0x20)
+    data = b"\x03\x81\x00\xc0" + wrap_unsecured(FRAME) + additions[:-3]
+    with pytest.raises(DecodeError) as err:
+        unwrap(data)
+    assert str(err.value) == "truncated: 1609.2 SignedDataPayload extensions: input ends early"
+
+
+def test_the_codec_loads_no_cryptography() -> None:
+    """Parsing and building 1609.2 needs no crypto library: signing and verifying are
+    catc.security's, apart from the codec."""
+    code = ("import sys, catc.j2735, catc.j2735.ieee1609, catc.j2735.obulog, catc.j2735.sniff; "
+            "print(sorted(m for m in sys.modules if m.split('.')[0] == 'cryptography'))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True)
+    assert out.stdout.strip() == "[]"

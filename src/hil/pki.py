@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from catc.errors import DecodeError
+from catc.j2735.ieee1609 import parse_certificate
 
 __all__ = ["LoadedPki", "PkiError", "init", "load", "trust_store"]
 
@@ -90,8 +91,6 @@ def _read(path: Path, what: str) -> bytes:
 
 
 def _certificate(path: Path) -> bytes:
-    from catc.j2735.ieee1609 import parse_certificate
-
     raw = _read(path, "certificate")
     try:
         parse_certificate(raw)

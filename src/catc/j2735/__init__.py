@@ -1,6 +1,13 @@
 """SAE J2735 BasicSafetyMessage on the wire: UPER codec, IEEE 1609.2 and OBU log containers."""
 
 from catc.bsm import BSM
+from catc.j2735.ieee1609 import (
+    Unwrapped,
+    looks_like_1609,
+    looks_like_wsmp,
+    unwrap,
+    unwrap_wsmp,
+)
 from catc.j2735.uper import (
     BSM_MESSAGE_ID,
     decode_bsm,
@@ -11,12 +18,10 @@ from catc.j2735.uper import (
 )
 
 
-def open_envelope(data: bytes):
+def open_envelope(data: bytes) -> tuple[bytes, Unwrapped | None]:
     """(the MessageFrame, its IEEE 1609.2 envelope or None) of a frame as an OBU receives
     it: a WSMP WAVE Short Message (IEEE 1609.3) and an ``Ieee1609Dot2Data`` are removed
     when present.  Raises :class:`catc.errors.DecodeError`."""
-    from catc.j2735.ieee1609 import looks_like_1609, looks_like_wsmp, unwrap, unwrap_wsmp
-
     if looks_like_wsmp(data):
         data, _psid = unwrap_wsmp(data)
     if looks_like_1609(data):

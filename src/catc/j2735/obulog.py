@@ -33,22 +33,10 @@ layout); see tests/test_obulog.py.
 
 from __future__ import annotations
 
-import io
+import struct
 from collections.abc import Iterator
 from dataclasses import dataclass
-
-from construct import (
-    Byte,
-    Container,
-    GreedyBytes,
-    Int8sl,
-    Int16ul,
-    Int32sl,
-    Int32ul,
-    Prefixed,
-    StreamError,
-    Struct,
-)
+from typing import Any
 
 from catc.errors import DecodeError
 from catc.j2735 import ieee1609
@@ -94,41 +82,33 @@ SECURITY_RESULT_CODES = (
     "spduCertificateExpired",
 )
 
-_LOCATION = Struct(
-    "lat" / Int32sl, "lon" / Int32sl, "elevation" / Int32sl, "speed" / Int16ul, "heading" / Int16ul
-)
-_TIME = Struct("utcTimeInSec" / Int32ul, "mSec" / Int16ul)
-_PAYLOAD = Prefixed(Int16ul, GreedyBytes)
 
-_BSM_LOG = Struct(
-    "direction" / Byte,
-    "location" / _LOCATION,
-    "time" / _TIME,
-    "securityResultCode" / Byte,
-    "payload" / _PAYLOAD,
-)
-_RX_MSG = Struct(
-    "rxSource" / Byte,
-    "location" / _LOCATION,
-    "time" / _TIME,
-    "securityResultCode" / Byte,
-    "payload" / _PAYLOAD,
-)
-_RX_MSG_2017 = Struct(
-    "location" / _LOCATION,
-    "time" / _TIME,
-    "rxSource" / Int32ul,
-    "verificationStatus" / Int8sl,
-    "payload" / _PAYLOAD,
-)
-_DN_MSG = Struct(
-    "location" / _LOCATION,
-    "time" / _TIME,
-    "securityResultCode" / Byte,
-    "payload" / _PAYLOAD,
-)
+@dataclass(frozen=True)
+class _Layout:
+    """A record layout: the header fields in order, read with one little-endian struct
+    whose last field is the payload ``length`` (uint16); the payload follows."""
+
+    fields: tuple[str, ...]
+    header: struct.Struct
+
+
+def _layout(*parts: tuple[str, str]) -> _Layout:
+    """A layout from (field, struct format character) pairs, ``length`` appended."""
+    parts = (*parts, ("length", "H"))
+    return _Layout(tuple(name for name, _ in parts),
+                   struct.Struct("<" + "".join(code for _, code in parts)))
+
+
+_LOCATION = (("lat", "i"), ("lon", "i"), ("elevation", "i"), ("speed", "H"), ("heading", "H"))
+_TIME = (("utcTimeInSec", "I"), ("mSec", "H"))
+
+_BSM_LOG = _layout(("direction", "B"), *_LOCATION, *_TIME, ("securityResultCode", "B"))
+_RX_MSG = _layout(("rxSource", "B"), *_LOCATION, *_TIME, ("securityResultCode", "B"))
+_RX_MSG_2017 = _layout(*_LOCATION, *_TIME, ("rxSource", "I"), ("verificationStatus", "b"))
+_DN_MSG = _layout(*_LOCATION, *_TIME, ("securityResultCode", "B"))
+
 #: The layouts each ODE record type may have been logged with.
-_LAYOUTS: dict[str, tuple[Struct, ...]] = {
+_LAYOUTS: dict[str, tuple[_Layout, ...]] = {
     "bsmLogDuringEvent": (_BSM_LOG,),
     "bsmTx": (_BSM_LOG,),
     "rxMsg": (_RX_MSG, _RX_MSG_2017),
@@ -177,27 +157,27 @@ def _enum(names: tuple[str, ...], raw: int, name: str) -> str:
     return names[raw]
 
 
-def _record(c: Container, kind: str) -> LogRecord:
-    loc, t = c.location, c.time
-    if t.mSec > 999:
-        raise DecodeError("out-of-range", f"OBU log mSec {t.mSec}")
-    payload = c.payload
+def _record(c: dict[str, Any], kind: str) -> LogRecord:
+    """The record of the header fields and payload ``c`` of one framed record."""
+    if c["mSec"] > 999:
+        raise DecodeError("out-of-range", f"OBU log mSec {c['mSec']}")
+    payload = c["payload"]
     frame = ieee1609.unwrap(payload).frame if ieee1609.looks_like_1609(payload) else payload
     if "verificationStatus" in c:
-        security: str | int = c.verificationStatus
+        security: str | int = c["verificationStatus"]
     else:
-        security = _enum(SECURITY_RESULT_CODES, c.securityResultCode, "securityResultCode")
+        security = _enum(SECURITY_RESULT_CODES, c["securityResultCode"], "securityResultCode")
     return LogRecord(
         kind=kind,
-        direction=_enum(DIRECTIONS, c.direction, "direction") if "direction" in c else None,
-        lat=_scaled(loc.lat, 900000001, -900000000, 900000000, 10_000_000, "latitude"),
-        lon=_scaled(loc.lon, 1800000001, -1799999999, 1800000000, 10_000_000, "longitude"),
-        elevation_m=_scaled(loc.elevation, -4096, -4095, 61439, 10, "elevation"),
-        speed_mps=_scaled(loc.speed, 8191, 0, 8190, 50, "speed"),
-        heading_deg=_scaled(loc.heading, 28800, 0, 28799, 80, "heading"),
-        utc_time=t.utcTimeInSec + t.mSec / 1000,
+        direction=_enum(DIRECTIONS, c["direction"], "direction") if "direction" in c else None,
+        lat=_scaled(c["lat"], 900000001, -900000000, 900000000, 10_000_000, "latitude"),
+        lon=_scaled(c["lon"], 1800000001, -1799999999, 1800000000, 10_000_000, "longitude"),
+        elevation_m=_scaled(c["elevation"], -4096, -4095, 61439, 10, "elevation"),
+        speed_mps=_scaled(c["speed"], 8191, 0, 8190, 50, "speed"),
+        heading_deg=_scaled(c["heading"], 28800, 0, 28799, 80, "heading"),
+        utc_time=c["utcTimeInSec"] + c["mSec"] / 1000,
         security_result=security,
-        rx_source=_enum(RX_SOURCES, c.rxSource, "rxSource") if "rxSource" in c else None,
+        rx_source=_enum(RX_SOURCES, c["rxSource"], "rxSource") if "rxSource" in c else None,
         payload=payload,
         frame=frame,
     )
@@ -206,24 +186,38 @@ def _record(c: Container, kind: str) -> LogRecord:
 _Fit = tuple[list[LogRecord], DecodeError | None]
 
 
+def _frame_record(data: bytes, start: int, layout: _Layout) -> dict[str, Any] | None:
+    """The header fields and payload of the record at ``start``; None if cut short."""
+    header_end = start + layout.header.size
+    if header_end > len(data):
+        return None
+    fields = dict(zip(layout.fields, layout.header.unpack_from(data, start), strict=True))
+    end = header_end + fields["length"]
+    if end > len(data):
+        return None
+    fields["payload"] = data[header_end:end]
+    return fields
+
+
 def _split(
-    data: bytes, layout: Struct, limit: int | None = None
-) -> tuple[list[Container], DecodeError | None]:
+    data: bytes, layout: _Layout, limit: int | None = None
+) -> tuple[list[dict[str, Any]], DecodeError | None]:
     """The framed records of ``data`` (headers parsed), and the error that ended framing."""
-    stream, size, parsed = io.BytesIO(bytes(data)), len(data), []
-    while stream.tell() < size and (limit is None or len(parsed) < limit):
-        start = stream.tell()
-        try:
-            parsed.append(layout.parse_stream(stream))
-        except StreamError:
+    data = bytes(data)
+    size, start, parsed = len(data), 0, []
+    while start < size and (limit is None or len(parsed) < limit):
+        fields = _frame_record(data, start, layout)
+        if fields is None:
             return parsed, DecodeError(
                 "truncated",
                 f"OBU log record {len(parsed)} at offset {start}: only {size - start} octets left",
             )
+        parsed.append(fields)
+        start += layout.header.size + fields["length"]
     return parsed, None
 
 
-def _fit(data: bytes, kind: str, layout: Struct, limit: int | None = None) -> _Fit | None:
+def _fit(data: bytes, kind: str, layout: _Layout, limit: int | None = None) -> _Fit | None:
     """Records and framing error, or None unless every record is a sane header + frame."""
     parsed, tail = _split(data, layout, limit)
     try:
@@ -235,7 +229,7 @@ def _fit(data: bytes, kind: str, layout: Struct, limit: int | None = None) -> _F
     return records, tail
 
 
-def _detect(data: bytes, candidates: tuple[tuple[str, Struct], ...]) -> _Fit:
+def _detect(data: bytes, candidates: tuple[tuple[str, _Layout], ...]) -> _Fit:
     """The candidate layout that frames the whole file (or all but a truncated tail)."""
     best: tuple[tuple[bool, int], _Fit] | None = None
     for kind, layout in candidates:

@@ -17,6 +17,7 @@ animation): the road around the host vehicle (HV) at one OBU tick, in the OBU's 
 from __future__ import annotations
 
 from collections import defaultdict
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -24,6 +25,9 @@ from captures.plot.draw import add_artist, add_line, car, fwd_right
 from captures.plot.load import Run
 from captures.plot.style import APP_COLOURS
 from captures.plot.zones import draw_zones, zone_text
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
 
 __all__ = ["FUTURE_S", "PAST_S", "birdseye"]
 
@@ -63,7 +67,7 @@ def _legend(ax, horizon_s: float | None) -> None:
               frameon=False, borderaxespad=0.0)
 
 
-def birdseye(ax, run: Run, t: float, window: float = 60.0, details: bool = True,
+def birdseye(ax: Axes, run: Run, t: float, window: float = 60.0, details: bool = True,
              legend: bool = True) -> int:
     """Draw the bird's-eye view of the tick nearest ``t`` on ``ax`` (see the module
     docstring); ``window`` is the half-width of the view (m).  ``details`` writes the list

@@ -3,7 +3,15 @@ and artists added to axes whose view is fixed (no autoscaling, no data-limit upd
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any
+
 import numpy as np
+import numpy.typing as npt
+
+if TYPE_CHECKING:
+    from matplotlib.artist import Artist
+    from matplotlib.axes import Axes
+    from matplotlib.lines import Line2D
 
 __all__ = ["CAR_LENGTH", "CAR_WIDTH", "add_artist", "add_line", "car", "fwd_right"]
 
@@ -11,7 +19,7 @@ __all__ = ["CAR_LENGTH", "CAR_WIDTH", "add_artist", "add_line", "car", "fwd_righ
 CAR_LENGTH, CAR_WIDTH = 4.8, 1.9
 
 
-def fwd_right(heading_deg: np.ndarray | float):
+def fwd_right(heading_deg: np.ndarray | float) -> tuple[tuple[Any, Any], tuple[Any, Any]]:
     """The unit vectors ``(east, north)`` forward along and to the right of a heading
     (deg clockwise from north)."""
     h = np.radians(heading_deg)
@@ -27,13 +35,13 @@ def car(x: float, y: float, heading: float, length: float = CAR_LENGTH,
     return np.array([(x + u * fx + v * rx, y + u * fy + v * ry) for u, v in local])
 
 
-def add_artist(ax, patch):
+def add_artist(ax: Axes, patch: Artist) -> Artist:
     """Add a patch without the data-limit update of ``add_patch`` (the view is fixed)."""
     ax.add_artist(patch)
     return patch
 
 
-def add_line(ax, x, y, **kw):
+def add_line(ax: Axes, x: npt.ArrayLike, y: npt.ArrayLike, **kw: Any) -> Line2D:
     """``ax.plot`` without autoscaling (the view is fixed), several times faster."""
     from matplotlib.lines import Line2D
 

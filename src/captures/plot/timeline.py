@@ -8,16 +8,20 @@ channel's delivered and dropped messages per RV and per second (the RVE's schedu
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from captures.plot.load import Run
 from captures.plot.style import APP_COLOURS
 
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
 __all__ = ["timeline"]
 
 
-def timeline(fig, run: Run) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+def timeline(fig: Figure, run: Run) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Draw the PTE, message and warning timelines on ``fig``; returns the PTE samples
     drawn, per RV id: ``(t, pte)``."""
     from matplotlib.patches import Patch

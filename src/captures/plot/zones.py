@@ -10,12 +10,17 @@ against; the lane width is ``w_lane`` of :class:`catc.classify.ClassifyConfig`.
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
+import numpy.typing as npt
 
 from captures.plot.draw import add_artist, add_line, fwd_right
 from captures.plot.load import Run
 from catc.classify import hv_radius_m
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
 
 __all__ = ["DIRECTION_TEXT", "LATERAL_TEXT", "draw_zones", "zone_text"]
 
@@ -96,7 +101,8 @@ def _text_angle(heading: float) -> float:
     return a - 180.0 if a > 90.0 else a + 180.0 if a < -90.0 else a
 
 
-def draw_zones(ax, run: Run, i: int, window: float, obstacles) -> None:
+def draw_zones(ax: Axes, run: Run, i: int, window: float, obstacles: npt.ArrayLike
+               ) -> None:
     """The zones of tick ``i`` on ``ax``: the five lateral bands of Eq. (tc_lateral)
     (``w_lane`` wide, along the HV's path of :func:`_centreline` over ``1.6 window`` m
     each way), the Ahead / Behind line of Eq. (tc_longi) across the road at the HV, and

@@ -4,7 +4,6 @@ leader brakes at 20 s, so there is an FCW."""
 
 from __future__ import annotations
 
-import json
 import shutil
 from pathlib import Path
 
@@ -17,6 +16,7 @@ from PIL import Image
 from captures import plot
 from captures.score import score
 from catc.cliargs import dispatch, make_parser
+from hil.capture import read_lines, schema
 from hil.transport.udp import free_ports
 from tests.test_obu import finish, rve, start_obu
 
@@ -40,7 +40,7 @@ def cli(*argv) -> int:
 
 
 def fcw_starts(cap) -> list[float]:
-    events = [json.loads(line) for line in (cap / "obu.events.jsonl").open()]
+    events = read_lines(cap / schema.OBU_EVENTS)
     return [e["t"] for e in events if e["app"] == "fcw" and e["kind"] == "start"]
 
 
@@ -140,9 +140,9 @@ def test_bad_flags_are_one_line_and_exit_2(capture, tmp_path, capsys, argv, need
 def test_bad_directories_are_one_line_and_exit_2(capture, tmp_path, capsys, monkeypatch):
     rve_only = tmp_path / "rve-only"
     rve_only.mkdir()
-    for f in capture.glob("rve.*"):
-        shutil.copy(f, rve_only / f.name)
-    cases = [(tmp_path / "nope", "not a directory"), (rve_only, "obu.config.json: missing")]
+    for name in (schema.RVE_CONFIG, schema.RVE_TRUTH, schema.RVE_SCHEDULE, schema.RVE_PCAPNG):
+        shutil.copy(capture / name, rve_only / name)
+    cases = [(tmp_path / "nope", "not a directory"), (rve_only, f"{schema.OBU_CONFIG}: missing")]
     for directory, needle in cases:
         assert cli(directory) == 2
         out, err = capsys.readouterr()

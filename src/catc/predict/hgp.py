@@ -82,7 +82,7 @@ from scipy.linalg import cho_solve, solve_triangular
 
 from catc.predict import gp, gpkernels
 from catc.predict.bank import KernelBank, default_bank
-from catc.predict.base import Observation, Prediction
+from catc.predict.base import Observation, Prediction, register_batch
 from catc.predict.forecast import (
     DT,
     Forecast,
@@ -1245,6 +1245,9 @@ def forecast_many_at(items: Iterable[tuple[object, float]]) -> int:
         for p, f in zip(preds, _forecast_batch(preds, [n for _, n in group]), strict=True):
             p._forecast = f
     return sum(len(group) for group in groups.values())
+
+
+register_batch(HgpPredictor, forecast_many_at, plans=True)
 
 
 def warm_up() -> None:

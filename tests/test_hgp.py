@@ -426,8 +426,8 @@ def test_reselection_every_k_samples_and_after_gaps():
         if len(every._obs) >= 4:
             every.predict(o.t + 0.5)
     assert every.stats["selections"] == 17
-    with pytest.raises(ValueError):
-        HgpPredictor(BANK, HgpConfig(reselect_every=0))
+    with pytest.raises(ValueError):  # checked by the configuration itself
+        HgpConfig(reselect_every=0)
 
 
 def test_reused_selection_is_the_selection_made_then():
@@ -603,7 +603,9 @@ def test_the_margin_can_differ_by_gap_class():
             p.predict(o.t + 0.1)
         assert p.branch(0.2) == want
     with pytest.raises(ValueError, match="one per gap class"):
-        HgpPredictor(BANK, HgpConfig(branch_margin=(1.0, 0.5)))
+        HgpConfig(branch_margin=(1.0, 0.5))
+    with pytest.raises(ValueError, match="ascending"):
+        HgpConfig(branch_edges=(1.0, 0.5))
 
 
 def test_before_any_scored_gap_the_gp_answers():

@@ -98,7 +98,9 @@ from catc.predict.kinematic import elapsed
 
 @dataclass(frozen=True)
 class HgpConfig:
-    """Every parameter of the HGP; defaults follow the paper where it gives one."""
+    """Every parameter of the HGP; defaults follow the paper where it gives one.  Checked
+    when made (``ValueError``): ``reselect_every`` an integer >= 1, ``branch_edges``
+    ascending, ``branch_margin`` one number or one per gap class."""
 
     tw: int = 30  # training window, samples (paper: TW = 30, 3 s)
     # Hyperparameter bounds (γ s, α1, α2) per series, from what a car can do rather than
@@ -166,6 +168,24 @@ class HgpConfig:
     # margin does (docs/hgp.md, "Blending instead of switching").
     branch_blend: float = 0.0
     blend_power: float = 1.0  # weights ∝ score ** -blend_power
+
+    def __post_init__(self) -> None:
+        if int(self.reselect_every) != self.reselect_every or self.reselect_every < 1:
+            raise ValueError(f"reselect_every must be an integer >= 1, got "
+                             f"{self.reselect_every!r}")
+        if list(self.branch_edges) != sorted(self.branch_edges):
+            raise ValueError(f"branch_edges must be ascending, got {self.branch_edges!r}")
+        self.margins()
+
+    def margins(self) -> list[float]:
+        """``branch_margin`` for each gap class (ValueError unless one, or one per class)."""
+        classes = len(self.branch_edges) + 1
+        if isinstance(self.branch_margin, (int, float)):
+            return [float(self.branch_margin)] * classes
+        if len(self.branch_margin) == classes:
+            return [float(m) for m in self.branch_margin]
+        raise ValueError(f"branch_margin: one per gap class ({classes}), got "
+                         f"{self.branch_margin!r}")
 
 
 def _window_series(obs: deque, window_s: float = math.inf) -> tuple[np.ndarray, ...]:
@@ -634,18 +654,6 @@ class HgpPredictor(_WindowPredictor):
 
     def __init__(self, bank: KernelBank | None = None, config: HgpConfig | None = None) -> None:
         c = config or HgpConfig()
-        if int(c.reselect_every) != c.reselect_every or c.reselect_every < 1:
-            raise ValueError(f"reselect_every must be an integer >= 1, got {c.reselect_every!r}")
-        if list(c.branch_edges) != sorted(c.branch_edges):
-            raise ValueError(f"branch_edges must be ascending, got {c.branch_edges!r}")
-        classes = len(c.branch_edges) + 1
-        if isinstance(c.branch_margin, (int, float)):
-            margins = [float(c.branch_margin)] * classes
-        elif len(c.branch_margin) == classes:
-            margins = [float(m) for m in c.branch_margin]
-        else:
-            raise ValueError(f"branch_margin: one per gap class ({classes}), got "
-                             f"{c.branch_margin!r}")
         try:  # one instance per distinct configuration, for forecast_many's grouping
             self.config = _CONFIGS.setdefault(c, c)
         except TypeError:  # a field given as a list: unhashable, grouped alone
@@ -673,7 +681,7 @@ class HgpPredictor(_WindowPredictor):
         # per gap class, the branch that answers (kept up to date by _score_branches) and
         # the margin a kinematic branch must beat the GP by
         self._choice = [0] * (len(c.branch_edges) + 1)
-        self._margins = margins
+        self._margins = c.margins()
         # per gap class, the blend's weights (branch_blend; None: the GP alone)
         self._weights: list[list[float] | None] = [None] * (len(c.branch_edges) + 1)
         # The window as running arrays: one column per received sample (rows t, speed,

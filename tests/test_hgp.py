@@ -552,16 +552,17 @@ def test_branches_answer_where_their_recent_gaps_were_better():
     got, want = p.predict(last.t + 0.2), ref.predict(last.t + 0.2)
     assert (got.x, got.y, got.source) == (want.x, want.y, want.source)
     assert p.predict(last.t + 5.0).source in ("gp", "cs", "ca")
-    assert p._score[0][0] > 2.0 * p._score[0][1]  # squared errors (GP 0.4 mm, CA 0.15 mm)
+    score = p._branches.score[0]
+    assert score[0] > 2.0 * score[1]  # squared errors (GP 0.4 mm, CA 0.15 mm)
     p.reset()
-    assert p.branch(0.2) == 0 and not any(p._scored)
+    assert p.branch(0.2) == 0 and not any(p._branches.scored)
     # a branch without position() (the IMM) is scored by its predict()'s x and y
     p = HgpPredictor(BANK, HgpConfig(branches=("imm", "ca"), branch_margin=1.0))
-    assert not hasattr(p._kin[0], "position")
+    assert not hasattr(p._branches.kin[0], "position")
     for o in obs[:60:2]:
         p.update(o)
         p.predict(o.t + 0.1)
-    assert p._scored[0] > 20 and p._score[0][1] > 0.0 and p.branch(0.2) in (1, 2)
+    assert p._branches.scored[0] > 20 and p._branches.score[0][1] > 0.0 and p.branch(0.2) in (1, 2)
 
 
 def test_blend_weights_branches_by_inverse_score_and_drops_the_bad_ones():
@@ -581,7 +582,7 @@ def test_blend_weights_branches_by_inverse_score_and_drops_the_bad_ones():
             p.predict(o.t + 0.1)
         t = obs[58].t + 0.2
         got, gp, ca = p.predict(t), read(p._forecast, p._since_last(t)[1]), ref.predict(t)
-        s_gp, s_ca = p._score[0]
+        s_gp, s_ca = p._branches.score[0]
         assert s_gp > 2.0 * s_ca > 0.0
         w_ca = (1 / s_ca) / (1 / s_gp + 1 / s_ca) if ratio > 1 else 1.0
         assert got.x == pytest.approx((1 - w_ca) * gp.x + w_ca * ca.x, abs=1e-12)
@@ -606,6 +607,8 @@ def test_the_margin_can_differ_by_gap_class():
         HgpConfig(branch_margin=(1.0, 0.5))
     with pytest.raises(ValueError, match="ascending"):
         HgpConfig(branch_edges=(1.0, 0.5))
+    with pytest.raises(ValueError, match="kinematic predictors"):
+        HgpConfig(branches=("ca", "hgp"))
 
 
 def test_before_any_scored_gap_the_gp_answers():

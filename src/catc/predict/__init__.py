@@ -32,20 +32,10 @@ from catc.predict.base import Observation, Prediction, Predictor, batch_support
 
 def _factories() -> dict[str, Callable[..., Predictor]]:
     from catc.predict.hgp import HgpDirectPredictor, HgpPredictor
-    from catc.predict.imm import ImmPredictor
-    from catc.predict.kalman import KalmanPredictor
-    from catc.predict.kinematic import (
-        ConstantAccelerationPredictor,
-        ConstantSpeedPredictor,
-        CtrvPredictor,
-        HoldPredictor,
-    )
+    from catc.predict.kinematic_table import KINEMATIC
     from catc.predict.nn import NN_NAMES, NnPredictor
 
-    return {"hold": HoldPredictor, "cs": ConstantSpeedPredictor,
-            "ca": ConstantAccelerationPredictor, "kf": KalmanPredictor, "ctrv": CtrvPredictor,
-            "imm": ImmPredictor,
-            **{n: partial(NnPredictor, n) for n in NN_NAMES},
+    return {**KINEMATIC, **{n: partial(NnPredictor, n) for n in NN_NAMES},
             "hgp": HgpPredictor, "hgp-d": HgpDirectPredictor}
 
 

@@ -82,7 +82,7 @@ from scipy.linalg import cho_solve, solve_triangular
 
 from catc.predict import gp, gpkernels
 from catc.predict.bank import KernelBank, default_bank
-from catc.predict.base import Observation, Prediction, register_batch
+from catc.predict.base import Observation, Prediction, Predictor, register_batch
 from catc.predict.forecast import (
     DT,
     Forecast,
@@ -94,13 +94,15 @@ from catc.predict.forecast import (
     read_xy,
 )
 from catc.predict.kinematic import elapsed
+from catc.predict.kinematic_table import KINEMATIC
 
 
 @dataclass(frozen=True)
 class HgpConfig:
     """Every parameter of the HGP; defaults follow the paper where it gives one.  Checked
     when made (``ValueError``): ``reselect_every`` an integer >= 1, ``branch_edges``
-    ascending, ``branch_margin`` one number or one per gap class."""
+    ascending, ``branch_margin`` one number or one per gap class, ``branches`` names of
+    :data:`catc.predict.kinematic_table.KINEMATIC`."""
 
     tw: int = 30  # training window, samples (paper: TW = 30, 3 s)
     # Hyperparameter bounds (γ s, α1, α2) per series, from what a car can do rather than
@@ -176,6 +178,10 @@ class HgpConfig:
         if list(self.branch_edges) != sorted(self.branch_edges):
             raise ValueError(f"branch_edges must be ascending, got {self.branch_edges!r}")
         self.margins()
+        unknown = [name for name in self.branches if name not in KINEMATIC]
+        if unknown:
+            raise ValueError(f"branches must be kinematic predictors "
+                             f"({', '.join(KINEMATIC)}), got {unknown[0]!r}")
 
     def margins(self) -> list[float]:
         """``branch_margin`` for each gap class (ValueError unless one, or one per class)."""
@@ -592,6 +598,100 @@ def _bank_cache(bank: KernelBank, c: HgpConfig) -> _BankCache:
     return cache
 
 
+def position_of(predictor: Predictor) -> Callable[[float], tuple[float, float]]:
+    """(x, y) of ``predictor.predict(t)``, for a branch without a ``position`` method."""
+    def position(t: float) -> tuple[float, float]:
+        p = predictor.predict(t)
+        return p.x, p.y
+    return position
+
+
+class Branches:
+    """The kinematic predictors that run beside the GP (``HgpConfig.branches``) and their
+    running scores per gap class: which one answers a gap, or the blend's weights (issue
+    17; docs/hgp.md "Branches").  Made from :data:`catc.predict.kinematic_table.KINEMATIC`."""
+
+    def __init__(self, c: HgpConfig) -> None:
+        self.config = c
+        self.kin: list[Predictor] = [KINEMATIC[name]() for name in c.branches]
+        # where each branch puts the vehicle at t, for its score (position() where a
+        # predictor has it: the x, y of predict() without the rest)
+        self.xy = [getattr(k, "position", None) or position_of(k) for k in self.kin]
+        # per gap class: GP, then each kinematic branch
+        self.score = [[0.0] * (len(self.kin) + 1) for _ in range(len(c.branch_edges) + 1)]
+        self.scored = [0] * (len(c.branch_edges) + 1)
+        # per gap class, the branch that answers (kept up to date by add) and the margin
+        # a kinematic branch must beat the GP by
+        self.choice = [0] * (len(c.branch_edges) + 1)
+        self.margins = c.margins()
+        # per gap class, the blend's weights (branch_blend; None: the GP alone)
+        self.weights: list[list[float] | None] = [None] * (len(c.branch_edges) + 1)
+
+    def reset(self) -> None:
+        """Forget the branches' histories and every score."""
+        for k in self.kin:
+            k.reset()
+        self.score = [[0.0] * len(row) for row in self.score]
+        self.scored = [0] * len(self.scored)
+        self.choice = [0] * len(self.choice)
+        self.weights = [None] * len(self.weights)
+
+    def update(self, obs: Observation) -> None:
+        """Feed every branch the received observation."""
+        for k in self.kin:
+            k.update(obs)
+
+    def gap_class(self, tau: float) -> int:
+        """The gap class of ``tau``: the number of ``branch_edges`` below it."""
+        return bisect.bisect_left(self.config.branch_edges, tau)
+
+    def score_gap(self, obs: Observation, gap: float, f: Forecast | None) -> None:
+        """Score each branch at ``obs``, the BSM that ends a gap of ``gap`` s, the GP by
+        its forecast ``f`` over the gap (nothing when no BSM was lost or the GP has no
+        forecast over the gap).  Call it before the branches see ``obs``."""
+        if gap <= DT + 1e-6:
+            return
+        if f is None or not covers(f, gap, self.config.horizon_s):
+            return
+        gx, gy = read_xy(f, gap)
+        x, y = obs.x, obs.y
+        errs = [(gx - x) ** 2 + (gy - y) ** 2]
+        for position in self.xy:
+            px, py = position(obs.t)
+            errs.append((px - x) ** 2 + (py - y) ** 2)
+        self.add(bisect.bisect_left(self.config.branch_edges, gap), errs)
+
+    def add(self, g: int, errs: list[float]) -> None:
+        """Enter one squared error per branch (the GP first) into gap class ``g``'s
+        scores, and renew that class's choice (and blend weights)."""
+        c = self.config
+        d = c.branch_decay
+        row = [d * old + (1.0 - d) * e for old, e in zip(self.score[g], errs, strict=True)]
+        self.score[g] = row
+        self.scored[g] += 1
+        k = min(range(1, len(row)), key=row.__getitem__)
+        self.choice[g] = k if row[k] < self.margins[g] * row[0] else 0
+        if c.branch_blend:
+            lim = c.branch_blend * max(min(row), 1e-12)
+            inv = [max(e, 1e-12) ** -c.blend_power if e <= lim else 0.0 for e in row]
+            total = sum(inv)
+            self.weights[g] = [v / total for v in inv]
+
+    def blend(self, t: float, gp: Prediction, w: list[float]) -> Prediction:
+        """The branches' answers at ``t`` averaged with weights ``w`` (GP first); heading
+        by its differences from the GP's, variances the GP's."""
+        x, y, speed, dh = w[0] * gp.x, w[0] * gp.y, w[0] * gp.speed, 0.0
+        for k, wk in zip(self.kin, w[1:], strict=True):
+            if wk:
+                p = k.predict(t)
+                x += wk * p.x
+                y += wk * p.y
+                speed += wk * p.speed
+                dh += wk * ((p.heading - gp.heading + 180.0) % 360.0 - 180.0)
+        return Prediction(x, y, speed, (gp.heading + dh) % 360.0, gp.var_x, gp.var_y,
+                          gp.source)
+
+
 class _WindowPredictor:
     """What both GP predictors share: the window of received observations and a cached
     forecast from the last one."""
@@ -666,24 +766,7 @@ class HgpPredictor(_WindowPredictor):
         self.stats = {"forecasts": 0, "selections": 0, "online_models": 0, "switch_ca": 0,
                       "switch_cs": 0}
         self._shared = _bank_cache(self.bank, c)
-        if c.branches:
-            from catc.predict import make_predictor
-
-            self._kin = [make_predictor(name) for name in c.branches]
-        else:
-            self._kin = []
-        # where each branch puts the vehicle at t, for its score (position() where a
-        # predictor has it: the x, y of predict() without the rest)
-        self._kin_xy = [getattr(k, "position", None) or _position_of(k) for k in self._kin]
-        # per gap class: GP, then each kinematic branch
-        self._score = [[0.0] * (len(self._kin) + 1) for _ in range(len(c.branch_edges) + 1)]
-        self._scored = [0] * (len(c.branch_edges) + 1)
-        # per gap class, the branch that answers (kept up to date by _score_branches) and
-        # the margin a kinematic branch must beat the GP by
-        self._choice = [0] * (len(c.branch_edges) + 1)
-        self._margins = c.margins()
-        # per gap class, the blend's weights (branch_blend; None: the GP alone)
-        self._weights: list[list[float] | None] = [None] * (len(c.branch_edges) + 1)
+        self._branches = Branches(self.config)
         # The window as running arrays: one column per received sample (rows t, speed,
         # unwrapped heading in rad, x, y), columns _lo.._hi of a buffer twice as long.
         self._buf = np.empty((5, 2 * c.tw + 2))
@@ -700,22 +783,17 @@ class HgpPredictor(_WindowPredictor):
     def reset(self) -> None:
         super().reset()
         self._reset_window()
-        for k in self._kin:
-            k.reset()
-        self._score = [[0.0] * len(row) for row in self._score]
-        self._scored = [0] * len(self._scored)
-        self._choice = [0] * len(self._choice)
-        self._weights = [None] * len(self._weights)
+        self._branches.reset()
 
     def update(self, obs: Observation) -> None:
         prev = self._obs[-1] if self._obs else None
         if prev is not None and obs.t <= prev.t:
             return
-        if self._kin:
+        branches = self._branches
+        if branches.kin:
             if prev is not None:
-                self._score_branches(obs, obs.t - prev.t)
-            for k in self._kin:
-                k.update(obs)
+                branches.score_gap(obs, obs.t - prev.t, self._forecast)
+            branches.update(obs)
         self._obs.append(obs)  # _WindowPredictor.update, its time check done above
         self._forecast = None
         c = self.config
@@ -760,16 +838,17 @@ class HgpPredictor(_WindowPredictor):
         f = self._forecast
         if f is None or not covers(f, tau, c.horizon_s):
             f = self._forecast = self._make_forecast(max(tau, 3.0))
-        if self._kin:
+        branches = self._branches
+        if branches.kin:
             g = bisect.bisect_left(c.branch_edges, tau)
             if c.branch_blend:
-                w = self._weights[g]
+                w = branches.weights[g]
                 if w is not None:
-                    return self._blend(t, read(f, tau), w)
+                    return branches.blend(t, read(f, tau), w)
             else:
-                branch = self._choice[g]
+                branch = branches.choice[g]
                 if branch:  # the GP's forecast is still made: it is scored at the next BSM
-                    return self._kin[branch - 1].predict(t)
+                    return branches.kin[branch - 1].predict(t)
         return f, tau
 
     def plan_pair(self, t0: float, t1: float) -> tuple:
@@ -785,71 +864,22 @@ class HgpPredictor(_WindowPredictor):
         if ((len(obs) if self._uncapped else self._window_len()) < c.min_points
                 or f.end < min(tau1, c.horizon_s) - 1e-9 or c.branch_blend):
             return self.plan(t0), self.plan(t1)  # a forecast to make, a blend, or CA
-        kin = self._kin
+        branches = self._branches
+        kin, choice = branches.kin, branches.choice
         if tau0 == 0.0:
             a0 = bsm_prediction(last)
         else:
-            b = self._choice[bisect.bisect_left(c.branch_edges, tau0)] if kin else 0
+            b = choice[bisect.bisect_left(c.branch_edges, tau0)] if kin else 0
             a0 = kin[b - 1].predict(t0) if b else (f, tau0)
         if tau1 == 0.0:
             return a0, bsm_prediction(last)
-        b = self._choice[bisect.bisect_left(c.branch_edges, tau1)] if kin else 0
+        b = choice[bisect.bisect_left(c.branch_edges, tau1)] if kin else 0
         return a0, kin[b - 1].predict(t1) if b else (f, tau1)
-
-    def _blend(self, t: float, gp: Prediction, w: list[float]) -> Prediction:
-        """The branches' answers at ``t`` averaged with weights ``w`` (GP first); heading
-        by its differences from the GP's, variances the GP's."""
-        x, y, speed, dh = w[0] * gp.x, w[0] * gp.y, w[0] * gp.speed, 0.0
-        for k, wk in zip(self._kin, w[1:], strict=True):
-            if wk:
-                p = k.predict(t)
-                x += wk * p.x
-                y += wk * p.y
-                speed += wk * p.speed
-                dh += wk * ((p.heading - gp.heading + 180.0) % 360.0 - 180.0)
-        return Prediction(x, y, speed, (gp.heading + dh) % 360.0, gp.var_x, gp.var_y,
-                          gp.source)
-
-    def _gap_class(self, tau: float) -> int:
-        """The gap class of ``tau``: the number of ``branch_edges`` below it."""
-        return bisect.bisect_left(self.config.branch_edges, tau)
 
     def branch(self, tau: float) -> int:
         """Which branch answers ``tau`` s after the last BSM: 0 the GP, k the k-th of
         ``config.branches``."""
-        return self._choice[self._gap_class(tau)]
-
-    def _score_branches(self, obs: Observation, gap: float) -> None:
-        """Score each branch at ``obs``, the BSM that ends a gap of ``gap`` s (nothing when
-        no BSM was lost or the GP has no forecast over the gap)."""
-        if gap <= DT + 1e-6:
-            return
-        f = self._forecast
-        if f is None or not covers(f, gap, self.config.horizon_s):
-            return
-        gx, gy = read_xy(f, gap)
-        x, y = obs.x, obs.y
-        errs = [(gx - x) ** 2 + (gy - y) ** 2]
-        for position in self._kin_xy:
-            px, py = position(obs.t)
-            errs.append((px - x) ** 2 + (py - y) ** 2)
-        self._add_scores(bisect.bisect_left(self.config.branch_edges, gap), errs)
-
-    def _add_scores(self, g: int, errs: list[float]) -> None:
-        """Enter one squared error per branch (the GP first) into gap class ``g``'s
-        scores, and renew that class's choice (and blend weights)."""
-        c = self.config
-        d = c.branch_decay
-        row = [d * old + (1.0 - d) * e for old, e in zip(self._score[g], errs, strict=True)]
-        self._score[g] = row
-        self._scored[g] += 1
-        k = min(range(1, len(row)), key=row.__getitem__)
-        self._choice[g] = k if row[k] < self._margins[g] * row[0] else 0
-        if c.branch_blend:
-            lim = c.branch_blend * max(min(row), 1e-12)
-            inv = [max(e, 1e-12) ** -c.blend_power if e <= lim else 0.0 for e in row]
-            total = sum(inv)
-            self._weights[g] = [v / total for v in inv]
+        return self._branches.choice[self._branches.gap_class(tau)]
 
     def _window_len(self) -> int:
         if math.isinf(self.config.window_s):  # the default: no time cap, no per-tick scan
@@ -1078,14 +1108,6 @@ class HgpPredictor(_WindowPredictor):
 #: 120 kB per window, a posterior's 23 kB).
 _SELECT_CHUNK = 16
 _POSTERIOR_CHUNK = 64
-
-
-def _position_of(predictor) -> Callable[[float], tuple[float, float]]:
-    """(x, y) of ``predictor.predict(t)``, for a branch without a ``position`` method."""
-    def position(t: float) -> tuple[float, float]:
-        p = predictor.predict(t)
-        return p.x, p.y
-    return position
 
 
 def _stack(arrays: list[np.ndarray]) -> np.ndarray:

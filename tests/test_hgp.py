@@ -177,7 +177,7 @@ def test_online_models_are_created_and_bounded():
         if k >= 30:
             p.predict(o.t + 0.5)
     assert p.stats["online_models"] > 2
-    assert len(p._online_speed) == 2
+    assert len(p._state.online_speed) == 2
 
 
 def test_direct_hgp_on_constant_velocity():
@@ -223,14 +223,14 @@ def test_predictor_uses_the_cache_only_on_regular_full_windows():
     obs = drive(40, v0=12.0, a=0.5, yaw=3.0)
     for o in obs[:30]:
         p.update(o)
-    assert p._regular_cache(np.arange(-29, 1) * 0.1) is not None
-    assert p._regular_cache(np.arange(-28, 1) * 0.1) is None  # not a full window
+    assert p._state.regular_cache(np.arange(-29, 1) * 0.1) is not None
+    assert p._state.regular_cache(np.arange(-28, 1) * 0.1) is None  # not a full window
     tau = np.arange(-29, 1) * 0.1
     tau[3] += 0.05
-    assert p._regular_cache(tau) is None  # a lost message
+    assert p._state.regular_cache(tau) is None  # a lost message
     a = p.predict(3.5)
     q = HgpPredictor(BANK, HgpConfig(select_with_slopes=True))
-    q._regular_cache = lambda tau: None  # force the direct path
+    q._state.regular_cache = lambda tau: None  # force the direct path
     for o in obs[:30]:
         q.update(o)
     b = q.predict(3.5)
@@ -247,7 +247,7 @@ def test_regular_cache_belongs_to_its_bank():
     for o in obs:
         p1.update(o)
         p2.update(o)
-    c1, c2 = p1._regular_cache(tau), p2._regular_cache(tau)
+    c1, c2 = p1._state.regular_cache(tau), p2._state.regular_cache(tau)
     assert c1 is not c2
     assert not np.allclose(c1[0].Kinv, c2[0].Kinv)
 
@@ -309,7 +309,7 @@ def test_fast_forecast_equals_the_readable_formulas(overrides):
             p.update(o)
         if len(p._obs) < 4:
             continue
-        _, cache = p._prepare()
+        _, cache = p._state.prepare()
         regular += cache is not None
         irregular += cache is None
         for horizon in (3.0, 7.35):
@@ -328,7 +328,7 @@ def test_running_window_equals_the_observation_window():
         for k, o in enumerate(random_track(rng, 400, 0.3)):
             p.update(o)
             if k % 7 == 0 and len(p._obs) >= 2:
-                rel, _ = p._prepare()
+                rel, _ = p._state.prepare()
                 tau, ys, yh, _, _ = _window_series(p._obs, window_s)
                 n = len(tau)
                 assert rel.shape == (3, n + 1)
@@ -380,7 +380,7 @@ def test_stacked_likelihood_and_posterior_equal_the_readable_formulas():
 def test_plausibility_bound_never_passes_a_switch():
     """The cheap bound on the extremes never calls a forecast plausible that _implausible
     would cut (it only skips work); forecasts built to sit near every threshold."""
-    from catc.predict.hgp import _plausible_rows
+    from catc.predict.hgp import _plausible_rows, implausible
 
     rng = np.random.default_rng(2)
     p = HgpPredictor(BANK)
@@ -394,7 +394,7 @@ def test_plausibility_bound_never_passes_a_switch():
         vh = rng.uniform(0, 1, 31) * rng.uniform(0, 1.1 * math.radians(c.heading_std_max)**2)
         ext = [speed.min(), speed.max(), np.abs(np.diff(speed)).max(),
                np.abs(np.diff(head)).max(), vs.max(), vh.max()]
-        found = p._implausible(grid, speed, vs, head, vh)
+        found = implausible(c, grid, speed, vs, head, vh)
         if _plausible_rows(c, np.array([ext]))[0]:
             passed += 1
             assert found is None
@@ -444,8 +444,8 @@ def test_reused_selection_is_the_selection_made_then():
         if len(lazy._obs) >= 4:
             lazy.predict(o.t + 0.1)
             fresh.predict(o.t + 0.1)
-            first = first or lazy._selection
-            assert lazy._selection is first
+            first = first or lazy._state.selection
+            assert lazy._state.selection is first
     ref = fresh._make_forecast_reference(3.0)
     assert_same_forecast(fresh._make_forecast(3.0), ref)
     assert fresh.stats["selections"] > 20 and lazy.stats["selections"] == 1

@@ -492,7 +492,7 @@ def _plausible_rows(c: HgpConfig, ext: np.ndarray) -> np.ndarray:
     """Per row of ``ext`` (B, 6), True when no forecast step can break a switching
     criterion, from the extremes of the forecast (least speed, greatest speed, greatest
     step changes of speed and heading, greatest variances).  Each criterion of
-    :meth:`HgpPredictor._implausible` is monotone in these, so True means it finds
+    :func:`implausible` is monotone in these, so True means it finds
     nothing; on False it is asked.  A NaN extreme is never plausible."""
     lo, hi, ds, dh, vs, vh = ext.T
     yaw = np.degrees(dh) / DT
@@ -517,13 +517,14 @@ def _all_gp(count: int) -> tuple[str, ...]:
     return src
 
 
-def _finish_stack(preds: list, mean: np.ndarray, var: np.ndarray, start: np.ndarray,
+def _finish_stack(states: list, mean: np.ndarray, var: np.ndarray, start: np.ndarray,
                   grid: np.ndarray) -> list[Forecast]:
-    """Switching, integration and position variance for B forecasts of one configuration:
+    """Switching, integration and position variance for B forecasts of one configuration
+    (``states``, :class:`WindowState`, for it and the switching counters):
     ``mean`` and ``var`` (B, 2, len(grid)) of speed and heading relative to the last sample
     (both are overwritten), ``start`` (B, 4) the last speed, heading (rad), x and y.
     The arithmetic of :meth:`HgpPredictor._make_forecast_reference`, on stacked rows."""
-    c = preds[0].config
+    c = states[0].config
     bsz, _, count = mean.shape
     _, dgrid, half_dgrid = _grid(count)
     start = np.ascontiguousarray(start)
@@ -533,11 +534,10 @@ def _finish_stack(preds: list, mean: np.ndarray, var: np.ndarray, start: np.ndar
     all_gp = _all_gp(count)
     sources = [all_gp] * bsz
     for i in np.flatnonzero(~_plausible_rows(c, ext)).tolist():
-        p = preds[i]
-        cut = p._implausible(grid, speed[i], vs[i], head[i], vh[i])
+        cut = implausible(c, grid, speed[i], vs[i], head[i], vh[i])
         if cut is not None:
             stop = bool(speed[i, cut] < 0)
-            p.stats["switch_ca" if stop else "switch_cs"] += 1
+            states[i].stats["switch_ca" if stop else "switch_cs"] += 1
             keep = max(cut - 1, 0)
             speed[i, cut:] = 0.0 if stop else max(speed[i, keep], 0.0)
             head[i, cut:] = head[i, keep]
@@ -719,7 +719,7 @@ class _WindowPredictor:
 
 
 @dataclass
-class _Selection:
+class Selection:
     """The models in use: θ per series, their bank rows (None for models from elsewhere:
     online ones, or a selection on values only) and their constants (2, 6)."""
 
@@ -747,6 +747,236 @@ def _steps(horizon: float, c: HgpConfig) -> int:
     return math.ceil(min(horizon, c.horizon_s) / DT - 1e-9) + 1
 
 
+class WindowState:
+    """What a forecast of one RV starts from, and all that the fast path reads and writes:
+    the window of received samples as running arrays, the models in use, the online bank,
+    the caches shared with the other predictors on the same bank, and the counters.  An
+    :class:`HgpPredictor` keeps one and hands it to :func:`_forecast_batch`."""
+
+    def __init__(self, bank: KernelBank, c: HgpConfig) -> None:
+        self.config = c
+        self.bank = bank
+        self.shared = _bank_cache(bank, c)
+        self.online_speed: deque[np.ndarray] = deque(maxlen=c.online_max)
+        self.online_heading: deque[np.ndarray] = deque(maxlen=c.online_max)
+        #: Counters for captures and the H2 figures.
+        self.stats = {"forecasts": 0, "selections": 0, "online_models": 0, "switch_ca": 0,
+                      "switch_cs": 0}
+        # The window as running arrays: one column per received sample (rows t, speed,
+        # unwrapped heading in rad, x, y), columns lo..hi of a buffer twice as long.
+        self.buf = np.empty((5, 2 * c.tw + 2))
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the window and the selection (not the online bank nor the counters)."""
+        self.lo = self.hi = 0
+        self.turn = 0.0  # what unwrapping the heading has added so far, rad
+        self.run = 0  # received samples in a row exactly DT apart
+        self.last: Observation | None = None  # the last received sample
+        self.selection: Selection | None = None
+        self.since_selection = 0  # samples received since the selection was made
+
+    def push(self, obs: Observation) -> None:
+        """Append a received sample (later than the last one)."""
+        c = self.config
+        prev = self.last
+        h = math.radians(obs.heading)
+        if prev is None:
+            self.run = 1
+        else:
+            dd = h - math.radians(prev.heading)  # np.unwrap's rule, one step at a time
+            if abs(dd) >= math.pi:
+                mod = (dd + math.pi) % (2.0 * math.pi) - math.pi
+                if mod == -math.pi and dd > 0:
+                    mod = math.pi
+                self.turn += mod - dd
+            gap = obs.t - prev.t
+            self.run = self.run + 1 if abs(gap - DT) <= 2e-6 else 1
+            if gap > c.reselect_gap_s + 1e-6:
+                self.selection = None
+        buf = self.buf
+        if self.hi == buf.shape[1]:
+            keep = c.tw - 1
+            buf[:, :keep] = buf[:, self.hi - keep:self.hi]
+            self.hi = keep
+        buf[:, self.hi] = (obs.t, obs.speed, h + self.turn, obs.x, obs.y)
+        self.hi += 1
+        self.lo = max(0, self.hi - c.tw)
+        self.since_selection += 1
+        self.last = obs
+
+    def window(self) -> np.ndarray:
+        """The window's running arrays (rows t, speed, unwrapped heading rad, x, y)."""
+        win = self.buf[:, self.lo:self.hi]
+        if not math.isinf(self.config.window_s):
+            win = win[:, int(np.argmax(win[0, -1] - win[0] <= self.config.window_s + 1e-9)):]
+        return win
+
+    def prepare(self) -> tuple[np.ndarray, tuple[RegularSlopeBank, ...] | None]:
+        """The window relative to its last sample, (3, n + 1): τ then 0 (the slope's time);
+        speed then the BSM's acceleration; heading (rad) then its yaw rate (rad/s); and the
+        regular-grid selection cache if it is a full window of samples DT apart, else None."""
+        c = self.config
+        last = self.last
+        win = self.window()
+        n = win.shape[1]
+        rel = np.empty((3, n + 1))
+        np.subtract(win[:3], win[:3, -1:], out=rel[:, :n])
+        rel[0, n] = 0.0
+        if c.slopes:
+            rel[1, n] = last.accel
+            rel[2, n] = math.radians(last.yaw_rate)
+        else:
+            rel[1:, n] = 0.0
+        return rel, self.cache_for(rel)
+
+    def cache_for(self, rel: np.ndarray) -> tuple[RegularSlopeBank, ...] | None:
+        """The regular-grid selection cache for the prepared window ``rel``, or None."""
+        n = rel.shape[1] - 1
+        regular = self.run >= n == self.config.tw and not self.online_speed
+        return self.regular_cache(rel[0, :n]) if regular else None
+
+    def regular_cache(self, tau: np.ndarray) -> tuple[RegularSlopeBank, ...] | None:
+        """The cached selection for a window of ``tw`` samples at exactly DT apart (no loss),
+        built once per bank and configuration and shared by all predictors."""
+        c = self.config
+        if len(tau) != c.tw or np.max(np.abs(np.diff(tau) - DT)) > 1e-6:
+            return None
+        regular = self.shared.regular
+        cache = regular.get(c.tw)
+        if cache is None:
+            cache = regular[c.tw] = (
+                RegularSlopeBank(self.bank.speed, c.tw, c.noise_speed, c.noise_accel),
+                RegularSlopeBank(self.bank.heading, c.tw, c.noise_heading, c.noise_yaw))
+        return cache
+
+    def regular_posterior(self, i: int, j: int, count: int,
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For a full regular window and a forecast of ``count`` points: the posterior weights
+        of speed model ``i`` and heading model ``j`` and their variances (2, count) (cached
+        per bank; see :class:`RegularSlopePosterior`)."""
+        c = self.config
+        post = self.shared.posterior.get((c.tw, count))
+        if post is None:
+            grid = _grid(count)[0]
+            post = self.shared.posterior[c.tw, count] = (
+                RegularSlopePosterior(self.bank.speed, c.tw, c.noise_speed, c.noise_accel,
+                                      grid),
+                RegularSlopePosterior(self.bank.heading, c.tw, c.noise_heading, c.noise_yaw,
+                                      grid))
+        return post[0].weights[i], post[1].weights[j], np.vstack([post[0].var[i],
+                                                                  post[1].var[j]])
+
+
+def implausible(c: HgpConfig, grid: np.ndarray, speed: np.ndarray, vs: np.ndarray,
+                head: np.ndarray, vh: np.ndarray) -> int | None:
+    """Index of the first forecast step that breaks a hybrid-switching criterion."""
+    accel = np.diff(speed) / DT
+    yaw = np.degrees(np.diff(head)) / DT
+    bad = np.zeros(len(grid), dtype=bool)
+    bad[1:] |= speed[1:] < 0
+    bad[1:] |= np.abs(accel) > c.accel_max
+    bad[1:] |= np.abs(yaw) > c.yaw_rate_max
+    bad[1:] |= np.abs(speed[1:] * np.radians(yaw)) > c.lat_accel_max
+    bad |= np.sqrt(vs) > c.speed_std_max
+    bad |= np.degrees(np.sqrt(vh)) > c.heading_std_max
+    idx = np.flatnonzero(bad)
+    return int(idx[0]) if len(idx) else None
+
+
+def select(s: WindowState, tau: np.ndarray, ys: np.ndarray, yh: np.ndarray,
+           slopes: tuple[float, float] | None = None) -> tuple[np.ndarray, ...]:
+    """Bank selection by maximum likelihood, by the readable formulas (the reference for
+    the stacked selection of :func:`_select_batch`)."""
+    c = s.config
+    speed_bank = s.bank.speed
+    heading_bank = s.bank.heading
+    if s.online_speed:
+        speed_bank = np.vstack([speed_bank, np.array(s.online_speed)])
+        heading_bank = np.vstack([heading_bank, np.array(s.online_heading)])
+    if slopes is not None and c.select_with_slopes:
+        cache = None if s.online_speed else s.regular_cache(tau)
+        if cache is not None:
+            ls, lh = cache[0].lml(ys, slopes[0]), cache[1].lml(yh, slopes[1])
+        else:
+            ls = lml_with_slope(tau, ys, slopes[0], c.noise_accel, speed_bank,
+                                c.noise_speed)
+            lh = lml_with_slope(tau, yh, slopes[1], c.noise_yaw, heading_bank,
+                                c.noise_heading)
+    else:
+        ls = gp.bank_log_marginal_likelihood(tau, ys, speed_bank, c.noise_speed)
+        lh = gp.bank_log_marginal_likelihood(tau, yh, heading_bank, c.noise_heading)
+    return speed_bank[int(np.argmax(ls))], heading_bank[int(np.argmax(lh))]
+
+
+def own_selection(s: WindowState, rel: np.ndarray,
+                  cache: tuple[RegularSlopeBank, ...] | None) -> Selection | None:
+    """The selection for this window when it is not worth stacking with others (a regular
+    window's cached one, an online bank, selection on values only); None otherwise."""
+    c = s.config
+    n = rel.shape[1] - 1
+    tau, ys, yh = rel[0, :n], rel[1, :n], rel[2, :n]
+    if not (c.slopes and c.select_with_slopes):
+        theta_s, theta_h = select(s, tau, ys, yh, None)
+        return Selection(theta_s, theta_h, None,
+                         _series_consts(np.array([theta_s, theta_h]), 1, c))
+    if s.online_speed:
+        speed = np.vstack([s.bank.speed, np.array(s.online_speed)])
+        thetas = np.vstack([speed, s.bank.heading, np.array(s.online_heading)])
+        m = len(speed)
+        lml = _lml_stack(tau[None], rel[None, 1:], _series_consts(thetas, m, c), m,
+                         thetas)[0]
+        pair = np.array([thetas[int(np.argmax(lml[:m]))], thetas[m + int(np.argmax(lml[m:]))]])
+        return Selection(pair[0], pair[1], None, _series_consts(pair, 1, c))
+    if cache is None:
+        return None
+    i = int(np.argmax(cache[0].lml_z(rel[1])))
+    j = int(np.argmax(cache[1].lml_z(rel[2])))
+    return Selection(s.bank.speed[i], s.bank.heading[j], (i, j), s.shared.pair(i, j))
+
+
+def backtest_fails(c: HgpConfig, tau, ys, yh, x, y, theta_s, theta_h, s0, h0) -> bool:
+    """True when the selected models miss the window's own last ``backtest_s`` by > PTE_th."""
+    split = tau <= -c.backtest_s + 1e-9
+    if split.sum() < c.min_points or (~split).sum() < 1:
+        return False
+    i0 = int(np.nonzero(split)[0][-1])
+    tr, ts = tau[: i0 + 1] - tau[i0], tau[i0 + 1:] - tau[i0]
+    grid = np.concatenate(([0.0], ts))
+    ms, _, mh, vh = forecast_path(tr, ys[: i0 + 1] - ys[i0], yh[: i0 + 1] - yh[i0], None,
+                                  theta_s, theta_h, grid, c)
+    px, py = integrate(x[i0], y[i0], grid, ms + s0 + ys[i0], mh + h0 + yh[i0], vh,
+                       c.integration)
+    return bool(np.max(np.hypot(px[1:] - x[i0 + 1:], py[1:] - y[i0 + 1:])) > c.pte_th)
+
+
+def fit_online(s: WindowState, tau: np.ndarray, ys: np.ndarray, yh: np.ndarray,
+               theta_s: np.ndarray, theta_h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """New speed and heading models fitted by LOO-CV on the window, warm-started from
+    ``theta_s`` and ``theta_h``, added to the online bank (and counted)."""
+    c = s.config
+    theta_s = gp.fit(tau, ys, c.noise_speed, theta_s, c.speed_bounds).theta
+    theta_h = gp.fit(tau, yh, c.noise_heading, theta_h, c.heading_bounds).theta
+    s.online_speed.append(theta_s)
+    s.online_heading.append(theta_h)
+    s.stats["online_models"] += 1
+    return theta_s, theta_h
+
+
+def go_online(s: WindowState, rel: np.ndarray) -> None:
+    """Online models: back-test the selection on the window and replace it by new fits
+    (added to the online bank) when it misses by more than PTE_th."""
+    c = s.config
+    n = rel.shape[1] - 1
+    tau, ys, yh = rel[0, :n], rel[1, :n], rel[2, :n]
+    win, last, sel = s.window(), s.last, s.selection
+    if backtest_fails(c, tau, ys, yh, win[3], win[4], sel.theta_s, sel.theta_h,
+                      last.speed, math.radians(last.heading)):
+        theta_s, theta_h = fit_online(s, tau, ys, yh, sel.theta_s, sel.theta_h)
+        s.selection = Selection(theta_s, theta_h, None,
+                                _series_consts(np.array([theta_s, theta_h]), 1, c))
+
+
 class HgpPredictor(_WindowPredictor):
     """Indirect HGP: GPs on speed and heading, positions by integration."""
 
@@ -760,29 +990,15 @@ class HgpPredictor(_WindowPredictor):
             self.config = c
         super().__init__(c.tw)
         self.bank = bank if bank is not None else default_bank()
-        self._online_speed: deque[np.ndarray] = deque(maxlen=c.online_max)
-        self._online_heading: deque[np.ndarray] = deque(maxlen=c.online_max)
+        self._state = WindowState(self.bank, self.config)
         #: Counters for captures and the H2 figures.
-        self.stats = {"forecasts": 0, "selections": 0, "online_models": 0, "switch_ca": 0,
-                      "switch_cs": 0}
-        self._shared = _bank_cache(self.bank, c)
+        self.stats = self._state.stats
         self._branches = Branches(self.config)
-        # The window as running arrays: one column per received sample (rows t, speed,
-        # unwrapped heading in rad, x, y), columns _lo.._hi of a buffer twice as long.
-        self._buf = np.empty((5, 2 * c.tw + 2))
         self._uncapped = math.isinf(c.window_s)  # the window is all of _obs
-        self._reset_window()
-
-    def _reset_window(self) -> None:
-        self._lo = self._hi = 0
-        self._turn = 0.0  # what unwrapping the heading has added so far, rad
-        self._run = 0  # received samples in a row exactly DT apart
-        self._selection: _Selection | None = None
-        self._since_selection = 0  # samples received since the selection was made
 
     def reset(self) -> None:
         super().reset()
-        self._reset_window()
+        self._state.reset()
         self._branches.reset()
 
     def update(self, obs: Observation) -> None:
@@ -796,30 +1012,7 @@ class HgpPredictor(_WindowPredictor):
             branches.update(obs)
         self._obs.append(obs)  # _WindowPredictor.update, its time check done above
         self._forecast = None
-        c = self.config
-        h = math.radians(obs.heading)
-        if prev is None:
-            self._run = 1
-        else:
-            dd = h - math.radians(prev.heading)  # np.unwrap's rule, one step at a time
-            if abs(dd) >= math.pi:
-                mod = (dd + math.pi) % (2.0 * math.pi) - math.pi
-                if mod == -math.pi and dd > 0:
-                    mod = math.pi
-                self._turn += mod - dd
-            gap = obs.t - prev.t
-            self._run = self._run + 1 if abs(gap - DT) <= 2e-6 else 1
-            if gap > c.reselect_gap_s + 1e-6:
-                self._selection = None
-        buf = self._buf
-        if self._hi == buf.shape[1]:
-            keep = c.tw - 1
-            buf[:, :keep] = buf[:, self._hi - keep:self._hi]
-            self._hi = keep
-        buf[:, self._hi] = (obs.t, obs.speed, h + self._turn, obs.x, obs.y)
-        self._hi += 1
-        self._lo = max(0, self._hi - c.tw)
-        self._since_selection += 1
+        self._state.push(obs)
 
     def predict(self, t: float) -> Prediction:
         answer = self.plan(t)
@@ -898,180 +1091,33 @@ class HgpPredictor(_WindowPredictor):
         return Prediction(last.x + dist * math.sin(h), last.y + dist * math.cos(h),
                           max(0.0, last.speed + a * tt), last.heading, source="ca")
 
-    def _window(self) -> np.ndarray:
-        """The window's running arrays (rows t, speed, unwrapped heading rad, x, y)."""
-        win = self._buf[:, self._lo:self._hi]
-        if not math.isinf(self.config.window_s):
-            win = win[:, int(np.argmax(win[0, -1] - win[0] <= self.config.window_s + 1e-9)):]
-        return win
-
-    def _prepare(self) -> tuple[np.ndarray, tuple[RegularSlopeBank, ...] | None]:
-        """The window relative to its last sample, (3, n + 1): τ then 0 (the slope's time);
-        speed then the BSM's acceleration; heading (rad) then its yaw rate (rad/s); and the
-        regular-grid selection cache if it is a full window of samples DT apart, else None."""
-        c = self.config
-        last = self._obs[-1]
-        win = self._window()
-        n = win.shape[1]
-        rel = np.empty((3, n + 1))
-        np.subtract(win[:3], win[:3, -1:], out=rel[:, :n])
-        rel[0, n] = 0.0
-        if c.slopes:
-            rel[1, n] = last.accel
-            rel[2, n] = math.radians(last.yaw_rate)
-        else:
-            rel[1:, n] = 0.0
-        return rel, self._cache_for(rel)
-
-    def _cache_for(self, rel: np.ndarray) -> tuple[RegularSlopeBank, ...] | None:
-        """The regular-grid selection cache for the prepared window ``rel``, or None."""
-        n = rel.shape[1] - 1
-        regular = self._run >= n == self.config.tw and not self._online_speed
-        return self._regular_cache(rel[0, :n]) if regular else None
-
-    def _regular_cache(self, tau: np.ndarray) -> tuple[RegularSlopeBank, ...] | None:
-        """The cached selection for a window of ``tw`` samples at exactly DT apart (no loss),
-        built once per bank and configuration and shared by all predictors."""
-        c = self.config
-        if len(tau) != c.tw or np.max(np.abs(np.diff(tau) - DT)) > 1e-6:
-            return None
-        regular = self._shared.regular
-        cache = regular.get(c.tw)
-        if cache is None:
-            cache = regular[c.tw] = (
-                RegularSlopeBank(self.bank.speed, c.tw, c.noise_speed, c.noise_accel),
-                RegularSlopeBank(self.bank.heading, c.tw, c.noise_heading, c.noise_yaw))
-        return cache
-
-    def _regular_posterior(self, i: int, j: int, count: int,
-                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """For a full regular window and a forecast of ``count`` points: the posterior weights
-        of speed model ``i`` and heading model ``j`` and their variances (2, count) (cached
-        per bank; see :class:`RegularSlopePosterior`)."""
-        c = self.config
-        post = self._shared.posterior.get((c.tw, count))
-        if post is None:
-            grid = _grid(count)[0]
-            post = self._shared.posterior[c.tw, count] = (
-                RegularSlopePosterior(self.bank.speed, c.tw, c.noise_speed, c.noise_accel,
-                                      grid),
-                RegularSlopePosterior(self.bank.heading, c.tw, c.noise_heading, c.noise_yaw,
-                                      grid))
-        return post[0].weights[i], post[1].weights[j], np.vstack([post[0].var[i],
-                                                                  post[1].var[j]])
-
-    def _select(self, tau: np.ndarray, ys: np.ndarray, yh: np.ndarray,
-                slopes: tuple[float, float] | None = None) -> tuple[np.ndarray, ...]:
-        """Bank selection by maximum likelihood, by the readable formulas (the reference for
-        the stacked selection of :func:`_select_batch`)."""
-        c = self.config
-        speed_bank = self.bank.speed
-        heading_bank = self.bank.heading
-        if self._online_speed:
-            speed_bank = np.vstack([speed_bank, np.array(self._online_speed)])
-            heading_bank = np.vstack([heading_bank, np.array(self._online_heading)])
-        if slopes is not None and c.select_with_slopes:
-            cache = None if self._online_speed else self._regular_cache(tau)
-            if cache is not None:
-                ls, lh = cache[0].lml(ys, slopes[0]), cache[1].lml(yh, slopes[1])
-            else:
-                ls = lml_with_slope(tau, ys, slopes[0], c.noise_accel, speed_bank,
-                                    c.noise_speed)
-                lh = lml_with_slope(tau, yh, slopes[1], c.noise_yaw, heading_bank,
-                                    c.noise_heading)
-        else:
-            ls = gp.bank_log_marginal_likelihood(tau, ys, speed_bank, c.noise_speed)
-            lh = gp.bank_log_marginal_likelihood(tau, yh, heading_bank, c.noise_heading)
-        return speed_bank[int(np.argmax(ls))], heading_bank[int(np.argmax(lh))]
-
-    def _own_selection(self, rel: np.ndarray,
-                       cache: tuple[RegularSlopeBank, ...] | None) -> _Selection | None:
-        """The selection for this window when it is not worth stacking with others (a regular
-        window's cached one, an online bank, selection on values only); None otherwise."""
-        c = self.config
-        n = rel.shape[1] - 1
-        tau, ys, yh = rel[0, :n], rel[1, :n], rel[2, :n]
-        if not (c.slopes and c.select_with_slopes):
-            theta_s, theta_h = self._select(tau, ys, yh, None)
-            return _Selection(theta_s, theta_h, None,
-                              _series_consts(np.array([theta_s, theta_h]), 1, c))
-        if self._online_speed:
-            speed = np.vstack([self.bank.speed, np.array(self._online_speed)])
-            thetas = np.vstack([speed, self.bank.heading, np.array(self._online_heading)])
-            m = len(speed)
-            lml = _lml_stack(tau[None], rel[None, 1:], _series_consts(thetas, m, c), m,
-                             thetas)[0]
-            pair = np.array([thetas[int(np.argmax(lml[:m]))], thetas[m + int(np.argmax(lml[m:]))]])
-            return _Selection(pair[0], pair[1], None, _series_consts(pair, 1, c))
-        if cache is None:
-            return None
-        i = int(np.argmax(cache[0].lml_z(rel[1])))
-        j = int(np.argmax(cache[1].lml_z(rel[2])))
-        return _Selection(self.bank.speed[i], self.bank.heading[j], (i, j),
-                          self._shared.pair(i, j))
-
-    def _backtest_fails(self, tau, ys, yh, x, y, theta_s, theta_h, s0, h0) -> bool:
-        """True when the selected models miss the window's own last ``backtest_s`` by > PTE_th."""
-        c = self.config
-        split = tau <= -c.backtest_s + 1e-9
-        if split.sum() < c.min_points or (~split).sum() < 1:
-            return False
-        i0 = int(np.nonzero(split)[0][-1])
-        tr, ts = tau[: i0 + 1] - tau[i0], tau[i0 + 1:] - tau[i0]
-        grid = np.concatenate(([0.0], ts))
-        ms, _, mh, vh = forecast_path(tr, ys[: i0 + 1] - ys[i0], yh[: i0 + 1] - yh[i0], None,
-                                      theta_s, theta_h, grid, c)
-        px, py = integrate(x[i0], y[i0], grid, ms + s0 + ys[i0], mh + h0 + yh[i0], vh,
-                           c.integration)
-        return bool(np.max(np.hypot(px[1:] - x[i0 + 1:], py[1:] - y[i0 + 1:])) > c.pte_th)
-
-    def _go_online(self, rel: np.ndarray) -> None:
-        """Online models: back-test the selection on the window and replace it by new fits
-        (added to this predictor's online bank) when it misses by more than PTE_th."""
-        c = self.config
-        n = rel.shape[1] - 1
-        tau, ys, yh = rel[0, :n], rel[1, :n], rel[2, :n]
-        win, last, sel = self._window(), self._obs[-1], self._selection
-        if self._backtest_fails(tau, ys, yh, win[3], win[4], sel.theta_s, sel.theta_h,
-                                last.speed, math.radians(last.heading)):
-            theta_s = gp.fit(tau, ys, c.noise_speed, sel.theta_s, c.speed_bounds).theta
-            theta_h = gp.fit(tau, yh, c.noise_heading, sel.theta_h, c.heading_bounds).theta
-            self._online_speed.append(theta_s)
-            self._online_heading.append(theta_h)
-            self.stats["online_models"] += 1
-            self._selection = _Selection(theta_s, theta_h, None,
-                                         _series_consts(np.array([theta_s, theta_h]), 1, c))
-
     def _make_forecast(self, horizon: float) -> Forecast:
-        return _forecast_batch([self], [_steps(horizon, self.config)])[0]
+        return _forecast_batch([self._state], [_steps(horizon, self.config)])[0]
 
     def _make_forecast_reference(self, horizon: float) -> Forecast:
         """The forecast by the readable formulas, selecting every time: what
         :meth:`_make_forecast` computed before it was made fast, kept as the reference the
         tests compare it with and as the "before" of ``bench/hgp_forecast.py``."""
         c = self.config
-        self.stats["forecasts"] += 1
+        s = self._state
+        s.stats["forecasts"] += 1
         last = self._obs[-1]
         tau, ys, yh, x, y = _window_series(self._obs, c.window_s)
         slopes = (last.accel, math.radians(last.yaw_rate)) if c.slopes else None
-        theta_s, theta_h = self._select(tau, ys, yh, slopes)
+        theta_s, theta_h = select(s, tau, ys, yh, slopes)
         s0, h0 = last.speed, math.radians(last.heading)
-        if c.online and self._backtest_fails(tau, ys, yh, x, y, theta_s, theta_h, s0, h0):
-            theta_s = gp.fit(tau, ys, c.noise_speed, theta_s, c.speed_bounds).theta
-            theta_h = gp.fit(tau, yh, c.noise_heading, theta_h, c.heading_bounds).theta
-            self._online_speed.append(theta_s)
-            self._online_heading.append(theta_h)
-            self.stats["online_models"] += 1
+        if c.online and backtest_fails(c, tau, ys, yh, x, y, theta_s, theta_h, s0, h0):
+            theta_s, theta_h = fit_online(s, tau, ys, yh, theta_s, theta_h)
         n = math.ceil(min(horizon, c.horizon_s) / DT - 1e-9)
         grid = np.arange(n + 1) * DT
         ms, vs, mh, vh = forecast_path(tau, ys, yh, slopes, theta_s, theta_h, grid, c)
         speed = ms + s0
         head = mh + h0
         source = ["gp"] * (n + 1)
-        cut = self._implausible(grid, speed, vs, head, vh)
+        cut = implausible(c, grid, speed, vs, head, vh)
         if cut is not None:
             stop = bool(speed[cut] < 0)
-            self.stats["switch_ca" if stop else "switch_cs"] += 1
+            s.stats["switch_ca" if stop else "switch_cs"] += 1
             keep = max(cut - 1, 0)
             speed[cut:] = 0.0 if stop else max(speed[keep], 0.0)
             head[cut:] = head[keep]
@@ -1088,21 +1134,6 @@ class HgpPredictor(_WindowPredictor):
                                          var_along * sh**2 + var_cross * ch**2,
                                          var_along * ch**2 + var_cross * sh**2]), source)
 
-    def _implausible(self, grid, speed, vs, head, vh) -> int | None:
-        """Index of the first forecast step that breaks a hybrid-switching criterion."""
-        c = self.config
-        accel = np.diff(speed) / DT
-        yaw = np.degrees(np.diff(head)) / DT
-        bad = np.zeros(len(grid), dtype=bool)
-        bad[1:] |= speed[1:] < 0
-        bad[1:] |= np.abs(accel) > c.accel_max
-        bad[1:] |= np.abs(yaw) > c.yaw_rate_max
-        bad[1:] |= np.abs(speed[1:] * np.radians(yaw)) > c.lat_accel_max
-        bad |= np.sqrt(vs) > c.speed_std_max
-        bad |= np.degrees(np.sqrt(vh)) > c.heading_std_max
-        idx = np.flatnonzero(bad)
-        return int(idx[0]) if len(idx) else None
-
 
 #: Windows per stacked call: bounds the work arrays (a selection's exponentials are
 #: 120 kB per window, a posterior's 23 kB).
@@ -1116,24 +1147,23 @@ def _stack(arrays: list[np.ndarray]) -> np.ndarray:
     return np.concatenate(arrays).reshape(len(arrays), *arrays[0].shape)
 
 
-def _select_batch(preds: list[HgpPredictor], rels: list[np.ndarray],
+def _select_batch(states: list[WindowState], rels: list[np.ndarray],
                   caches: list[tuple[RegularSlopeBank, ...] | None]) -> None:
-    """Select bank models for these predictors: the same choice as
-    :meth:`HgpPredictor._select`."""
+    """Select bank models for these windows: the same choice as :func:`select`."""
     todo = []
-    for p, rel, cache in zip(preds, rels, caches, strict=True):
-        p.stats["selections"] += 1
-        p._since_selection = 0
-        sel = p._own_selection(rel, cache)
+    for s, rel, cache in zip(states, rels, caches, strict=True):
+        s.stats["selections"] += 1
+        s.since_selection = 0
+        sel = own_selection(s, rel, cache)
         if sel is None:
-            todo.append((p, rel))
+            todo.append((s, rel))
         else:
-            p._selection = sel
-    by_len: dict[int, list[tuple[HgpPredictor, np.ndarray]]] = {}
+            s.selection = sel
+    by_len: dict[int, list[tuple[WindowState, np.ndarray]]] = {}
     for item in todo:
         by_len.setdefault(item[1].shape[1], []).append(item)
     for items in by_len.values():
-        shared = items[0][0]._shared
+        shared = items[0][0].shared
         m = shared.m
         for lo in range(0, len(items), _SELECT_CHUNK):
             chunk = items[lo:lo + _SELECT_CHUNK]
@@ -1141,58 +1171,58 @@ def _select_batch(preds: list[HgpPredictor], rels: list[np.ndarray],
             lml = _lml_stack(rels[:, 0, :-1], rels[:, 1:], shared.consts, m, shared.thetas)
             best_s = np.argmax(lml[:, :m], axis=1).tolist()
             best_h = np.argmax(lml[:, m:], axis=1).tolist()
-            for (p, _), i, j in zip(chunk, best_s, best_h, strict=True):
-                p._selection = _Selection(shared.thetas[i], shared.thetas[m + j], (i, j),
-                                          shared.pair(i, j))
+            for (s, _), i, j in zip(chunk, best_s, best_h, strict=True):
+                s.selection = Selection(shared.thetas[i], shared.thetas[m + j], (i, j),
+                                        shared.pair(i, j))
 
 
-def _prepare_many(preds: list[HgpPredictor]) -> list[tuple]:
-    """:meth:`HgpPredictor._prepare` of each predictor; full windows (``tw`` samples, no
-    time cap: nearly all of them) in one stacked subtraction, the same numbers."""
-    c = preds[0].config
-    out: list = [None] * len(preds)
+def _prepare_many(states: list[WindowState]) -> list[tuple]:
+    """:meth:`WindowState.prepare` of each window; full windows (``tw`` samples, no time
+    cap: nearly all of them) in one stacked subtraction, the same numbers."""
+    c = states[0].config
+    out: list = [None] * len(states)
     full, wins = [], []
     if c.slopes and math.isinf(c.window_s):
-        for i, p in enumerate(preds):
-            if p._hi - p._lo == c.tw:
+        for i, s in enumerate(states):
+            if s.hi - s.lo == c.tw:
                 full.append(i)
-                wins.append(p._buf[:3, p._lo:p._hi])
+                wins.append(s.buf[:3, s.lo:s.hi])
     if len(full) > 1:
         win = _stack(wins)
         n = c.tw
         rel = np.empty((len(full), 3, n + 1))
         np.subtract(win, win[:, :, -1:], out=rel[:, :, :n])
         rel[:, 0, n] = 0.0
-        last = [preds[i]._obs[-1] for i in full]
+        last = [states[i].last for i in full]
         rel[:, 1, n] = [o.accel for o in last]
         rel[:, 2, n] = [math.radians(o.yaw_rate) for o in last]
         for i, r in zip(full, rel, strict=True):
-            out[i] = (r, preds[i]._cache_for(r))
-    for i, p in enumerate(preds):
+            out[i] = (r, states[i].cache_for(r))
+    for i, s in enumerate(states):
         if out[i] is None:
-            out[i] = p._prepare()
+            out[i] = s.prepare()
     return out
 
 
-def _forecast_batch(preds: list[HgpPredictor], counts: list[int]) -> list[Forecast]:
-    """Forecasts of ``counts[i]`` points for each predictor (all on one bank and
+def _forecast_batch(states: list[WindowState], counts: list[int]) -> list[Forecast]:
+    """Forecasts of ``counts[i]`` points from each window (all on one bank and
     configuration), computed stacked; what :meth:`HgpPredictor._make_forecast_reference`
     computes, to round-off, with the selection renewed as ``reselect_every`` and
     ``reselect_gap_s`` say."""
-    c = preds[0].config
-    prepared = _prepare_many(preds)
+    c = states[0].config
+    prepared = _prepare_many(states)
     stale = []
-    for i, p in enumerate(preds):
-        p.stats["forecasts"] += 1
-        if p._selection is None or p._since_selection >= c.reselect_every:
+    for i, s in enumerate(states):
+        s.stats["forecasts"] += 1
+        if s.selection is None or s.since_selection >= c.reselect_every:
             stale.append(i)
     if stale:
-        _select_batch([preds[i] for i in stale], [prepared[i][0] for i in stale],
+        _select_batch([states[i] for i in stale], [prepared[i][0] for i in stale],
                       [prepared[i][1] for i in stale])
     if c.online:
-        for p, (rel, _) in zip(preds, prepared, strict=True):
-            p._go_online(rel)
-    out: list[Forecast | None] = [None] * len(preds)
+        for s, (rel, _) in zip(states, prepared, strict=True):
+            go_online(s, rel)
+    out: list[Forecast | None] = [None] * len(states)
     groups: dict[tuple[int, int], list[int]] = {}
     for i, ((rel, _), count) in enumerate(zip(prepared, counts, strict=True)):
         groups.setdefault((rel.shape[1], count), []).append(i)
@@ -1200,18 +1230,18 @@ def _forecast_batch(preds: list[HgpPredictor], counts: list[int]) -> list[Foreca
         grid = _grid(count)[0]
         direct = []
         for row, i in enumerate(members):
-            sel, cache = preds[i]._selection, prepared[i][1]
+            sel, cache = states[i].selection, prepared[i][1]
             if c.slopes and not (sel.index is not None and cache is not None):
                 direct.append(row)
         if len(direct) == len(members) <= _POSTERIOR_CHUNK:  # the usual case: one call
             rels = [prepared[i][0] for i in members]
-            consts = [preds[i]._selection.consts for i in members]
+            consts = [states[i].selection.consts for i in members]
             mean, var = _posterior_stack(_stack(rels), grid, _stack(consts))
         else:
             mean = np.empty((len(members), 2, count))
             var = np.empty((len(members), 2, count))
             for row, i in enumerate(members):
-                p, rel, sel = preds[i], prepared[i][0], preds[i]._selection
+                s, rel, sel = states[i], prepared[i][0], states[i].selection
                 if not c.slopes:
                     tau = rel[0, :-1]
                     mean[row, 0], var[row, 0] = gp.posterior(tau, rel[1, :-1], grid,
@@ -1219,7 +1249,7 @@ def _forecast_batch(preds: list[HgpPredictor], counts: list[int]) -> list[Foreca
                     mean[row, 1], var[row, 1] = gp.posterior(tau, rel[2, :-1], grid,
                                                              sel.theta_h, c.noise_heading)
                 elif sel.index is not None and prepared[i][1] is not None:
-                    w_s, w_h, var[row] = p._regular_posterior(*sel.index, count)
+                    w_s, w_h, var[row] = s.regular_posterior(*sel.index, count)
                     np.dot(w_s, rel[1], out=mean[row, 0])
                     np.dot(w_h, rel[2], out=mean[row, 1])
             for lo in range(0, len(direct), _POSTERIOR_CHUNK):
@@ -1227,7 +1257,7 @@ def _forecast_batch(preds: list[HgpPredictor], counts: list[int]) -> list[Foreca
                 chunk = [members[r] for r in rows]
                 mean[rows], var[rows] = _posterior_stack(
                     _stack([prepared[i][0] for i in chunk]), grid,
-                    _stack([preds[i]._selection.consts for i in chunk]))
+                    _stack([states[i].selection.consts for i in chunk]))
         if c.slopes and c.speed_model == "ca":  # diagnostics: kinematic speed or heading
             for row, i in enumerate(members):
                 mean[row, 0], var[row, 0] = prepared[i][0][1, -1] * grid, 0.0
@@ -1235,8 +1265,8 @@ def _forecast_batch(preds: list[HgpPredictor], counts: list[int]) -> list[Foreca
             for row, i in enumerate(members):
                 mean[row, 1], var[row, 1] = prepared[i][0][2, -1] * grid, 0.0
         start = np.array([(o.speed, math.radians(o.heading), o.x, o.y)
-                          for o in (preds[i]._obs[-1] for i in members)])
-        for i, f in zip(members, _finish_stack([preds[i] for i in members], mean, var, start,
+                          for o in (states[i].last for i in members)])
+        for i, f in zip(members, _finish_stack([states[i] for i in members], mean, var, start,
                                                grid), strict=True):
             out[i] = f
     return out  # type: ignore[return-value]
@@ -1269,10 +1299,11 @@ def forecast_many_at(items: Iterable[tuple[object, float]]) -> int:
             continue
         if p._window_len() < c.min_points:
             continue
-        groups.setdefault((id(c), id(p._shared)), []).append((p, _steps(max(tau, 3.0), c)))
+        groups.setdefault((id(c), id(p._state.shared)), []).append((p, _steps(max(tau, 3.0), c)))
     for group in groups.values():
         preds = [p for p, _ in group]
-        for p, f in zip(preds, _forecast_batch(preds, [n for _, n in group]), strict=True):
+        made = _forecast_batch([p._state for p in preds], [n for _, n in group])
+        for p, f in zip(preds, made, strict=True):
             p._forecast = f
     return sum(len(group) for group in groups.values())
 

@@ -193,7 +193,7 @@ def test_direct_hgp_on_constant_velocity():
 def test_batched_slope_likelihood_equals_the_joint_gaussian():
     from scipy.stats import multivariate_normal
 
-    from catc.predict.hgp import _slope_system, lml_with_slope
+    from catc.predict.hgp.reference import lml_with_slope, slope_system
 
     rng = np.random.default_rng(4)
     tau = np.append(-np.sort(rng.uniform(0.1, 3, 9))[::-1], 0.0)
@@ -201,7 +201,7 @@ def test_batched_slope_likelihood_equals_the_joint_gaussian():
     thetas = np.array([[1.7, 0.8, 0.3], [0.5, 0.1, 0.02], [20.0, 1.5, 0.9]])
     got = lml_with_slope(tau, y, slope, 1e-2, thetas, 1e-3)
     for theta, value in zip(thetas, got, strict=True):
-        K, _ = _slope_system(tau, theta, 1e-3, 1e-2)
+        K, _ = slope_system(tau, theta, 1e-3, 1e-2)
         assert value == pytest.approx(
             multivariate_normal(np.zeros(11), K).logpdf(np.append(y, slope)), abs=1e-8)
 
@@ -319,8 +319,8 @@ def test_fast_forecast_equals_the_readable_formulas(overrides):
 
 def test_running_window_equals_the_observation_window():
     """The running arrays (kept across wrap-arounds of their buffer and of the heading
-    through north) give the same τ, speed and unwrapped heading as _window_series."""
-    from catc.predict.hgp import _window_series
+    through north) give the same τ, speed and unwrapped heading as window_series."""
+    from catc.predict.hgp.reference import window_series
 
     rng = np.random.default_rng(3)
     for window_s in (math.inf, 2.5):
@@ -329,7 +329,7 @@ def test_running_window_equals_the_observation_window():
             p.update(o)
             if k % 7 == 0 and len(p._obs) >= 2:
                 rel, _ = p._state.prepare()
-                tau, ys, yh, _, _ = _window_series(p._obs, window_s)
+                tau, ys, yh, _, _ = window_series(p._obs, window_s)
                 n = len(tau)
                 assert rel.shape == (3, n + 1)
                 assert np.allclose(rel[:, :n], [tau, ys, yh], rtol=0.0, atol=1e-12)
@@ -339,14 +339,15 @@ def test_running_window_equals_the_observation_window():
 
 
 def test_stacked_likelihood_and_posterior_equal_the_readable_formulas():
-    from catc.predict.hgp import _lml_stack, _posterior_stack, _series_consts, lml_with_slope
+    from catc.predict.hgp import lml_with_slope
+    from catc.predict.hgp.gpstack import lml_stack, posterior_stack, series_consts
 
     rng = np.random.default_rng(8)
     cfg = HgpConfig()
     speed = np.array([[1.7, 0.8, 0.3], [0.31, 5.0, 0.02], [90.0, 1.5, 0.9]])
     heading = np.array([[3.0, 0.05, 0.05], [0.3, 2.0, 0.01], [60.0, 1e-4, 1e-5]])
     thetas = np.vstack([speed, heading])
-    consts = _series_consts(thetas, 3, cfg)
+    consts = series_consts(thetas, 3, cfg)
     grid = np.arange(31) * 0.1
     rels, pairs, wants = [], [], []
     for span in (2.9, 12.0, 80.0):  # the last underflows exp for the short γ
@@ -354,7 +355,7 @@ def test_stacked_likelihood_and_posterior_equal_the_readable_formulas():
         z = np.vstack([np.append(np.cumsum(rng.normal(size=20)) * 0.1, 0.4),
                        np.append(np.cumsum(rng.normal(size=20)) * 0.01, -0.05)])
         z[:, 19] = 0.0
-        got = _lml_stack(tau[None], z[None], consts, 3, thetas)[0]
+        got = lml_stack(tau[None], z[None], consts, 3, thetas)[0]
         wants.append(np.concatenate([
             lml_with_slope(tau, z[0, :20], z[0, 20], cfg.noise_accel, speed, cfg.noise_speed),
             lml_with_slope(tau, z[1, :20], z[1, 20], cfg.noise_yaw, heading,
@@ -363,9 +364,9 @@ def test_stacked_likelihood_and_posterior_equal_the_readable_formulas():
         rels.append(np.vstack([np.append(tau, 0.0), z]))
         pairs.append((int(rng.integers(3)), int(rng.integers(3))))
     stacked = np.stack(rels)  # several windows in one call
-    assert np.allclose(_lml_stack(stacked[:, 0, :-1], stacked[:, 1:], consts, 3, thetas),
+    assert np.allclose(lml_stack(stacked[:, 0, :-1], stacked[:, 1:], consts, 3, thetas),
                        wants, rtol=1e-12, atol=1e-8)
-    mean, var = _posterior_stack(np.stack(rels), grid,
+    mean, var = posterior_stack(np.stack(rels), grid,
                                  np.stack([consts[[i, 3 + j]] for i, j in pairs]))
     for b, (rel, (i, j)) in enumerate(zip(rels, pairs, strict=True)):
         for s, (theta, noise, slope_var) in enumerate(
@@ -378,9 +379,10 @@ def test_stacked_likelihood_and_posterior_equal_the_readable_formulas():
 
 
 def test_plausibility_bound_never_passes_a_switch():
-    """The cheap bound on the extremes never calls a forecast plausible that _implausible
+    """The cheap bound on the extremes never calls a forecast plausible that implausible
     would cut (it only skips work); forecasts built to sit near every threshold."""
-    from catc.predict.hgp import _plausible_rows, implausible
+    from catc.predict.hgp.reference import implausible
+    from catc.predict.hgp.stacked import plausible_rows
 
     rng = np.random.default_rng(2)
     p = HgpPredictor(BANK)
@@ -395,7 +397,7 @@ def test_plausibility_bound_never_passes_a_switch():
         ext = [speed.min(), speed.max(), np.abs(np.diff(speed)).max(),
                np.abs(np.diff(head)).max(), vs.max(), vh.max()]
         found = implausible(c, grid, speed, vs, head, vh)
-        if _plausible_rows(c, np.array([ext]))[0]:
+        if plausible_rows(c, np.array([ext]))[0]:
             passed += 1
             assert found is None
         cut += found is not None
@@ -641,11 +643,11 @@ def test_kernel_bench_agrees_with_lapack():
 
 
 def test_compiled_row_passes_are_the_numpy_reductions():
-    """gpkernels.shift_rows (the first pass of _finish_stack) against the numpy it
+    """gpkernels.shift_rows (the first pass of finish_stack) against the numpy it
     replaced: the shifted means, the clipped variances and the extremes bit for bit,
     NaN where numpy's reductions give NaN (such a row is never plausible)."""
     from catc.predict import gpkernels
-    from catc.predict.hgp import _plausible_rows
+    from catc.predict.hgp.stacked import plausible_rows
 
     rng = np.random.default_rng(8)
     mean = rng.normal(0, 3, (40, 2, 31))
@@ -666,22 +668,22 @@ def test_compiled_row_passes_are_the_numpy_reductions():
     np.testing.assert_array_equal(ext[ok], want[ok])
     assert np.isnan(ext[3]).any() and np.isnan(ext[5]).any()
     c = HgpConfig()
-    assert _plausible_rows(c, ext).tolist() == _plausible_rows(c, want).tolist()
-    assert not _plausible_rows(c, ext)[[3, 5]].any()
+    assert plausible_rows(c, ext).tolist() == plausible_rows(c, want).tolist()
+    assert not plausible_rows(c, ext)[[3, 5]].any()
 
 
 @pytest.mark.parametrize("rule", ["trapezoid", "left"])
 def test_compiled_integration_is_the_numpy_one(rule):
-    """gpkernels.integrate_rows (positions and position variances of _finish_stack) is the
+    """gpkernels.integrate_rows (positions and position variances of finish_stack) is the
     numpy arithmetic it replaced, bit for bit: rates, trapezoid or left rule, one
     cumulative sum per quantity, heading in degrees wrapped to [0, 360)."""
     from catc.predict import gpkernels
     from catc.predict.forecast import DT
-    from catc.predict.hgp import _grid
+    from catc.predict.hgp.gpstack import forecast_grid
 
     rng = np.random.default_rng(11)
     bsz, count = 30, 31
-    _, dgrid, half = _grid(count)
+    _, dgrid, half = forecast_grid(count)
     mean = np.stack([rng.uniform(0, 30, (bsz, count)),
                      rng.normal(0, 4, (bsz, count))], axis=1)  # headings of any sign
     var = rng.uniform(0, 0.3, (bsz, 2, count))
@@ -689,7 +691,7 @@ def test_compiled_integration_is_the_numpy_one(rule):
     speed, head, vs, vh = mean[:, 0], mean[:, 1], var[:, 0], var[:, 1]
     sc = np.stack([np.sin(head), np.cos(head)], axis=1)
     eff = speed * np.exp(-0.5 * vh)
-    # the numpy passes (what _finish_stack did)
+    # the numpy passes (what finish_stack did)
     rate = np.empty((bsz, 4, count))
     np.multiply(eff[:, None], sc, out=rate[:, :2])
     rate[:, 2] = vs

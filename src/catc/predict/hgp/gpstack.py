@@ -29,7 +29,9 @@ _C, _LOG_S1, _S1, _S2, _KDD, _NOISE = (gpkernels.C, gpkernels.LOG_S1, gpkernels.
 def consts(thetas: np.ndarray, noise: np.ndarray, slope_var: np.ndarray) -> np.ndarray:
     """Per model row θ = (γ, α1, α2) with its value and slope noise, the columns of
     :data:`catc.predict.gpkernels.C` and after: −1/(2γ²), log α1², α1², α2², var f′(0) +
-    slope noise, value noise; shape (R, gpkernels.CONSTS)."""
+    slope noise, value noise; shape (R, gpkernels.CONSTS).  The kernel is the paper's
+    κ(t, t') = α1² exp(−(t−t')²/(2γ²)) + α2² t t' (eq. "covariance func"), and
+    var f′(0) = α1²/γ² + α2² (R&W 2006 §9.4, as :func:`~.reference.slope_system`)."""
     th = np.asarray(thetas, dtype=float)
     gamma, a1, a2 = th[:, 0], th[:, 1], th[:, 2]
     out = np.empty((len(th), gpkernels.CONSTS))
@@ -85,7 +87,8 @@ def _tril(n: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _window_exps(tau: np.ndarray, coef: np.ndarray, name: str) -> np.ndarray:
-    """α1²·exp(c·d²) = exp(c·d² + log α1²) for the packed lower triangle of the squared
+    """α1²·exp(c·d²) = exp(c·d² + log α1²), the RBF term of κ (paper eq. "covariance func",
+    c = −1/(2γ²)), for the packed lower triangle of the squared
     time differences d² of each window ``tau`` (B, n), under models whose rows c and
     log α1² are ``coef`` (2, M), shared by all windows, or (B, 2, M), one set per window:
     one matrix product of [d², 1] with them, into work array ``name``; (B, P, M)."""
@@ -106,7 +109,10 @@ def _window_exps(tau: np.ndarray, coef: np.ndarray, name: str) -> np.ndarray:
 
 def lml_stack(tau: np.ndarray, z: np.ndarray, p: np.ndarray, m: int,
               thetas: np.ndarray) -> np.ndarray:
-    """:func:`lml_with_slope` of B windows under S = 2m models: ``tau`` (B, n), each ending
+    """:func:`~.reference.lml_with_slope` (the score of the paper's model selection, eq.
+    "eq-,odelselection": −½ zᵀK⁻¹z − ½ log det K − (n+1)/2 log 2π with z the values and
+    the slope; R&W 2006 Algorithm 2.1, lines 2 and 7) of B windows under S = 2m models:
+    ``tau`` (B, n), each ending
     at 0, ``z`` (B, 2, n + 1) the speed and heading values with their slope, ``p`` (S, 6) the
     constants of ``thetas`` (m speed models scored on z[:, 0], then m heading models on
     z[:, 1]).  Returns (B, S).
@@ -127,7 +133,9 @@ def lml_stack(tau: np.ndarray, z: np.ndarray, p: np.ndarray, m: int,
 
 def posterior_stack(rel: np.ndarray, grid: np.ndarray,
                     p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`posterior_with_slope` of speed and heading for B windows at once.
+    """:func:`~.reference.posterior_with_slope` of speed and heading for B windows at once:
+    the paper's eq. "eq:forecastingheadingspeed" (μ* = K1 K2⁻¹ S, Σ* = K3 − K1 K2⁻¹ K1ᵀ,
+    diagonal) by R&W 2006 Algorithm 2.1, lines 2-6, in the compiled kernel.
 
     ``rel`` (B, 3, n + 1): τ (ending at 0, then a 0 for the slope point), the speed values
     and slope, the heading values and slope; ``p`` (B, 2, 6) each window's speed and heading

@@ -68,18 +68,20 @@ def posterior_with_slope(tau: np.ndarray, y: np.ndarray, slope: float, slope_var
                          grid: np.ndarray, theta: np.ndarray,
                          noise_var: float) -> tuple[np.ndarray, np.ndarray]:
     """GP posterior conditioned on the values ``y`` at ``tau`` and on the derivative
-    ``slope`` at τ = 0 (R&W 2006 §9.4: derivative observations)."""
+    ``slope`` at τ = 0 (R&W 2006 §9.4: derivative observations): the paper's eq.
+    "eq:forecastingheadingspeed", μ* = K1 K2⁻¹ S and Σ* = K3 − K1 K2⁻¹ K1ᵀ (diagonal), by
+    R&W 2006 Algorithm 2.1 (its line numbers below)."""
     K, k_fd = slope_system(tau, theta, noise_var, slope_var)
     n = len(tau)
-    Ks = np.empty((n + 1, len(grid)))
+    Ks = np.empty((n + 1, len(grid)))  # K1ᵀ: the window (and slope) against the grid
     Ks[:n] = gp.kernel(tau, grid, theta)
     Ks[n] = k_fd(grid)
-    L = np.linalg.cholesky(K)
-    alpha = cho_solve((L, True), np.append(y, slope), check_finite=False)
-    v = solve_triangular(L, Ks, lower=True, check_finite=False)
+    L = np.linalg.cholesky(K)  # line 2
+    alpha = cho_solve((L, True), np.append(y, slope), check_finite=False)  # line 3
+    v = solve_triangular(L, Ks, lower=True, check_finite=False)  # line 5
     _, a1, a2 = theta
-    var = a1 * a1 + a2 * a2 * grid * grid - np.sum(v * v, axis=0)
-    return Ks.T @ alpha, var
+    var = a1 * a1 + a2 * a2 * grid * grid - np.sum(v * v, axis=0)  # line 6: κ(t*, t*) − vᵀv
+    return Ks.T @ alpha, var  # line 4
 
 
 def slope_stack(tau: np.ndarray, thetas: np.ndarray, noise_var: float,
@@ -101,7 +103,8 @@ def slope_stack(tau: np.ndarray, thetas: np.ndarray, noise_var: float,
 def lml_with_slope(tau: np.ndarray, y: np.ndarray, slope: float, slope_var: float,
                    thetas: np.ndarray, noise_var: float) -> np.ndarray:
     """Log marginal likelihood of (values, slope) under each model in ``thetas`` (R&W eq. 2.30
-    with the derivative observation appended), batched over the bank."""
+    with the derivative observation appended), batched over the bank: the score of the
+    paper's model selection, eq. "eq-,odelselection"."""
     K = slope_stack(tau, thetas, noise_var, slope_var)
     n = len(tau)
     z = np.append(y, slope)
@@ -194,7 +197,10 @@ class RegularSlopePosterior:
 
 def implausible(c: HgpConfig, grid: np.ndarray, speed: np.ndarray, vs: np.ndarray,
                 head: np.ndarray, vh: np.ndarray) -> int | None:
-    """Index of the first forecast step that breaks a hybrid-switching criterion."""
+    """Index of the first forecast step that breaks a hybrid-switching criterion (paper:
+    "GP predictions are swapped with constant speed and constant acceleration predictions
+    if a specific criterion is met"; the criteria, ours, are listed in
+    :mod:`catc.predict.hgp`), or None."""
     accel = np.diff(speed) / DT
     yaw = np.degrees(np.diff(head)) / DT
     bad = np.zeros(len(grid), dtype=bool)

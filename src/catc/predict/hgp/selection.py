@@ -20,8 +20,9 @@ from catc.predict.hgp.window import Selection, WindowState
 
 def select(s: WindowState, tau: np.ndarray, ys: np.ndarray, yh: np.ndarray,
            slopes: tuple[float, float] | None = None) -> tuple[np.ndarray, ...]:
-    """Bank selection by maximum likelihood, by the readable formulas (the reference for
-    the stacked selection of :func:`select_batch`)."""
+    """Bank selection by maximum likelihood (paper eq. "eq-,odelselection"), by the
+    readable formulas (the reference for the stacked selection of :func:`select_batch`):
+    the speed and heading models θ* of the bank and online bank."""
     c = s.config
     speed_bank = s.bank.speed
     heading_bank = s.bank.heading
@@ -70,13 +71,15 @@ def own_selection(s: WindowState, rel: np.ndarray,
 
 
 #: Windows per stacked call: bounds the work arrays (a selection's exponentials are
-#: 120 kB per window, a posterior's 23 kB).
+#: 120 kB per window).
 _SELECT_CHUNK = 16
 
 
 def select_batch(states: list[WindowState], rels: list[np.ndarray],
                  caches: list[tuple[RegularSlopeBank, ...] | None]) -> None:
-    """Select bank models for these windows: the same choice as :func:`select`."""
+    """Select bank models for these windows, θ* = argmax over the bank of
+    :func:`~.gpstack.lml_stack` per series (paper eq. "eq-,odelselection"), the windows of
+    one length stacked: the same choice as :func:`select`."""
     todo = []
     for s, rel, cache in zip(states, rels, caches, strict=True):
         s.stats["selections"] += 1

@@ -26,11 +26,13 @@ from catc.predict.hgp.window import WindowState
 
 
 def plausible_rows(c: HgpConfig, ext: np.ndarray) -> np.ndarray:
-    """Per row of ``ext`` (B, 6), True when no forecast step can break a switching
-    criterion, from the extremes of the forecast (least speed, greatest speed, greatest
-    step changes of speed and heading, greatest variances).  Each criterion of
-    :func:`implausible` is monotone in these, so True means it finds
-    nothing; on False it is asked.  A NaN extreme is never plausible."""
+    """Per row of ``ext`` (B, 6), True when no forecast step can break a hybrid-switching
+    criterion (paper: GP predictions "swapped with constant speed and constant
+    acceleration predictions if a specific criterion is met"), from the extremes of the
+    forecast (least speed, greatest speed, greatest step changes of speed and heading,
+    greatest variances).  Each criterion of :func:`~.reference.implausible` is monotone
+    in these, so True means it finds nothing; on False it is asked.  A NaN extreme is
+    never plausible."""
     lo, hi, ds, dh, vs, vh = ext.T
     yaw = np.degrees(dh) / DT
     ok = lo >= 0.0
@@ -60,7 +62,17 @@ def finish_stack(states: list[WindowState], mean: np.ndarray, var: np.ndarray, s
     (``states``, :class:`WindowState`, for it and the switching counters):
     ``mean`` and ``var`` (B, 2, len(grid)) of speed and heading relative to the last sample
     (both are overwritten), ``start`` (B, 4) the last speed, heading (rad), x and y.
-    The arithmetic of :meth:`HgpPredictor._make_forecast_reference`, on stacked rows."""
+    The arithmetic of ``HgpPredictor._make_forecast_reference``, on stacked rows:
+
+    * hybrid switching: from the first step that breaks a criterion
+      (:func:`~.reference.implausible`) constant acceleration to a stop (μs < 0) or
+      constant speed and heading;
+    * positions by the paper's piecewise integration, eq. "eq-positionprediction2":
+      x̄(t_{j+1}) = x̄(t_j) + (t_{j+1} − t_j)·μs·e^{−σh²/2}·sin μh (east; the paper's cos is
+      north, headings here being clockwise from north), trapezoid rule by default
+      (``integration="left"`` is the paper's literal recursion);
+    * position variances to first order: the speed variance along the heading and
+      s²·σh² across it, accumulated over the steps."""
     c = states[0].config
     bsz, _, count = mean.shape
     _, dgrid, half_dgrid = forecast_grid(count)
@@ -97,11 +109,13 @@ def finish_stack(states: list[WindowState], mean: np.ndarray, var: np.ndarray, s
     return [Forecast(grid, row, src, end) for row, src in zip(table, sources, strict=True)]
 
 
+#: Windows per posterior call: bounds the work arrays (23 kB per window).
 _POSTERIOR_CHUNK = 64
 
 
 def prepare_many(states: list[WindowState]) -> list[tuple]:
-    """:meth:`WindowState.prepare` of each window; full windows (``tw`` samples, no time
+    """:meth:`WindowState.prepare` of each window (times and values relative to the last
+    received sample, the slope appended); full windows (``tw`` samples, no time
     cap: nearly all of them) in one stacked subtraction, the same numbers."""
     c = states[0].config
     out: list = [None] * len(states)
@@ -130,9 +144,13 @@ def prepare_many(states: list[WindowState]) -> list[tuple]:
 
 def forecast_batch(states: list[WindowState], counts: list[int]) -> list[Forecast]:
     """Forecasts of ``counts[i]`` points from each window (all on one bank and
-    configuration), computed stacked; what :meth:`HgpPredictor._make_forecast_reference`
+    configuration), computed stacked; what ``HgpPredictor._make_forecast_reference``
     computes, to round-off, with the selection renewed as ``reselect_every`` and
-    ``reselect_gap_s`` say."""
+    ``reselect_gap_s`` say: model selection where due (paper eq. "eq-,odelselection",
+    :func:`~.selection.select_batch`), online models if on, then the speed and heading
+    forecasts (paper eq. "eq:forecastingheadingspeed"): cached posterior weights for a
+    regular full window, else :func:`~.gpstack.posterior_stack`; then
+    :func:`finish_stack`."""
     c = states[0].config
     prepared = prepare_many(states)
     stale = []

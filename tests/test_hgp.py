@@ -535,6 +535,30 @@ def test_predict_columns_are_exactly_the_one_by_one_predictions():
         assert read_xy(f, tau) == (r.x, r.y)
 
 
+def test_the_batch_interface_is_declared_not_discovered():
+    """predict_columns and prepare_at ask the registry of catc.predict.base, by class: the
+    HGP (and its subclasses) plans and prepares, hgp-d and the kinematic ones do neither;
+    a class declaring plans without plan and plan_pair is refused."""
+    from catc.predict import make_predictor
+    from catc.predict.base import BatchSupport, batch_support, register_batch
+    from catc.predict.hgp import forecast_many_at
+
+    class Sub(HgpPredictor):
+        pass
+
+    for cls in (HgpPredictor, Sub):
+        assert batch_support(cls) == BatchSupport(forecast_many_at, plans=True)
+    for name in ("hgp-d", "ca", "kf", "imm"):
+        assert batch_support(type(make_predictor(name))) is None, name
+
+    class NoPlans:
+        pass
+
+    with pytest.raises(TypeError, match="plan"):
+        register_batch(NoPlans, plans=True)
+    assert batch_support(NoPlans) is None
+
+
 def test_branches_answer_where_their_recent_gaps_were_better():
     """A vehicle on an exact constant-acceleration path with every other BSM lost: CA
     predicts each gap's end (to the truth's integration error), the GP does not quite,

@@ -1,7 +1,7 @@
 """The indirect HGP predictor (``hgp``): the answers at any time from the last forecast,
 the branches, or the fallbacks; and :func:`forecast_many_at`, which makes the forecasts due
-at a tick stacked (registered as its batch preparer, :func:`catc.predict.base.
-register_batch`).
+at a tick stacked.  :class:`HgpPredictor` is a :class:`~catc.predict.base.BatchPredictor`
+with :func:`forecast_many_at` as its preparer (:func:`~catc.predict.base.register_batch`).
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from collections.abc import Iterable
 import numpy as np
 
 from catc.predict.bank import KernelBank, default_bank
-from catc.predict.base import Observation, Prediction, register_batch
+from catc.predict.base import Observation, Plan, Prediction, register_batch
 from catc.predict.forecast import DT, Forecast, bsm_prediction, covers, integrate, read
 from catc.predict.hgp.branches import Branches
 from catc.predict.hgp.config import HgpConfig
@@ -70,7 +70,7 @@ class HgpPredictor(WindowPredictor):
         answer = self.plan(t)
         return read(*answer) if answer.__class__ is tuple else answer
 
-    def plan(self, t: float) -> Prediction | tuple[Forecast, float]:
+    def plan(self, t: float) -> Plan:
         """What :meth:`predict` answers at ``t``: the Prediction, or ``(forecast, tau)``
         when the answer is the GP forecast read ``tau`` s after the last BSM (for
         :func:`catc.predict.predict_columns`, which reads many at once)."""
@@ -96,7 +96,7 @@ class HgpPredictor(WindowPredictor):
                     return branches.kin[branch - 1].predict(t)
         return f, tau
 
-    def plan_pair(self, t0: float, t1: float) -> tuple:
+    def plan_pair(self, t0: float, t1: float) -> tuple[Plan, Plan]:
         """``(plan(t0), plan(t1))``, the very answers of the two calls (t0 ≤ t1), in one:
         the CA-TC asks every RV at now and at now + 2 s, after its forecasts were made
         (then neither call makes one, and this shares their lookups)."""

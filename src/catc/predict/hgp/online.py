@@ -22,7 +22,9 @@ from catc.predict.hgp.reference import forecast_path
 from catc.predict.hgp.window import Selection, WindowState
 
 
-def backtest_fails(c: HgpConfig, tau, ys, yh, x, y, theta_s, theta_h, s0, h0) -> bool:
+def backtest_fails(c: HgpConfig, tau: np.ndarray, ys: np.ndarray, yh: np.ndarray,
+                   x: np.ndarray, y: np.ndarray, theta_s: np.ndarray, theta_h: np.ndarray,
+                   s0: float, h0: float) -> bool:
     """True when the selected models miss the window's own last ``backtest_s`` by > PTE_th."""
     split = tau <= -c.backtest_s + 1e-9
     if split.sum() < c.min_points or (~split).sum() < 1:

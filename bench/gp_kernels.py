@@ -10,13 +10,13 @@ the grid).  Three ways to do the factorisations and solves of the selections:
 * ``numpy``: numpy's stacked ``linalg.cholesky`` and ``linalg.solve`` over all systems at
   once;
 * ``kernel``: :func:`catc.predict.gpkernels.select_lml` (through
-  ``catc.predict.hgp._lml_stack``, with numpy's exponentials), the systems of a window
+  ``catc.predict.hgp.gpstack.lml_stack``, with numpy's exponentials), the systems of a window
   interleaved (it also assembles the covariances from the exponentials and sums the
   likelihoods, which the other two rows leave out).
 
 And the posteriors of ``--forecasts`` forecasts: ``lapack`` (``dpotrf`` + ``dtrtrs`` on
 [z | K*] per series, as before) against :func:`catc.predict.gpkernels.posterior`
-(through ``catc.predict.hgp._posterior_stack``, exponentials included).  All
+(through ``catc.predict.hgp.gpstack.posterior_stack``, exponentials included).  All
 rows get the same windows (random gaps at PER 50 %, bank models); the likelihoods and
 posterior means of the rows agree (printed: the largest difference).  Best of
 ``--repeat`` runs (a shared VM: timings vary by ±10 %).
@@ -42,14 +42,14 @@ from scipy.linalg import lapack  # noqa: E402
 
 from catc.predict import gp  # noqa: E402
 from catc.predict.bank import default_bank  # noqa: E402
-from catc.predict.hgp import (  # noqa: E402
-    HgpConfig,
-    _grid,
-    _lml_stack,
-    _posterior_stack,
-    _series_consts,
-    _slope_system,
+from catc.predict.hgp import HgpConfig  # noqa: E402
+from catc.predict.hgp.gpstack import (  # noqa: E402
+    forecast_grid,
+    lml_stack,
+    posterior_stack,
+    series_consts,
 )
+from catc.predict.hgp.reference import slope_system  # noqa: E402
 
 
 def windows(b: int, n: int = 30, seed: int = 0) -> np.ndarray:
@@ -83,7 +83,7 @@ def selections(rel: np.ndarray, repeat: int) -> dict:
     thetas = np.vstack([bank.speed, bank.heading])
     noise = [(c.noise_speed, c.noise_accel)] * m + [(c.noise_heading, c.noise_yaw)] * m
     n = rel.shape[2] - 1
-    mats = np.array([[_slope_system(r[0, :n], th, nv, sv)[0] for th, (nv, sv)
+    mats = np.array([[slope_system(r[0, :n], th, nv, sv)[0] for th, (nv, sv)
                       in zip(thetas, noise, strict=True)] for r in rel])  # (B, S, k, k)
     zs = np.array([[r[1 + (s >= m)] for s in range(2 * m)] for r in rel])  # (B, S, k)
 
@@ -102,10 +102,10 @@ def selections(rel: np.ndarray, repeat: int) -> dict:
         return -0.5 * np.einsum("bsi,bsi->bs", w, w) - np.log(
             np.diagonal(L, axis1=2, axis2=3)).sum(axis=-1)
 
-    consts = _series_consts(thetas, m, c)
+    consts = series_consts(thetas, m, c)
 
     def with_kernel() -> np.ndarray:
-        return _lml_stack(rel[:, 0, :-1], rel[:, 1:], consts, m, thetas) \
+        return lml_stack(rel[:, 0, :-1], rel[:, 1:], consts, m, thetas) \
             + 0.5 * (n + 1) * np.log(2 * np.pi)
 
     ref = with_lapack()
@@ -122,17 +122,17 @@ def posteriors(rel: np.ndarray, repeat: int) -> dict:
     bank = default_bank()
     m = len(bank.speed)
     thetas = np.vstack([bank.speed, bank.heading])
-    consts = _series_consts(thetas, m, c)
+    consts = series_consts(thetas, m, c)
     rng = np.random.default_rng(1)
     pick = [(int(rng.integers(m)), m + int(rng.integers(m))) for _ in range(len(rel))]
     p = np.array([consts[list(ij)] for ij in pick])  # (B, 2, 9)
-    grid = _grid(31)[0]
+    grid = forecast_grid(31)[0]
     n = rel.shape[2] - 1
     noise = ((c.noise_speed, c.noise_accel), (c.noise_heading, c.noise_yaw))
     systems = []
     for r, ij in zip(rel, pick, strict=True):
         for s in range(2):
-            K, k_fd = _slope_system(r[0, :n], thetas[ij[s]], *noise[s])
+            K, k_fd = slope_system(r[0, :n], thetas[ij[s]], *noise[s])
             ks = np.vstack([gp.kernel(r[0, :n], grid, thetas[ij[s]]), k_fd(grid)])
             systems.append((K, np.column_stack([r[1 + s], ks])))
 
@@ -145,7 +145,7 @@ def posteriors(rel: np.ndarray, repeat: int) -> dict:
         return out
 
     def with_kernel() -> np.ndarray:
-        return _posterior_stack(rel, grid, p)[0].reshape(len(systems), -1)
+        return posterior_stack(rel, grid, p)[0].reshape(len(systems), -1)
 
     ref = with_lapack()
     rows = {}

@@ -56,7 +56,7 @@ class EagerHgp(HgpPredictor):
     def update(self, obs) -> None:
         if self._obs and obs.t <= self._obs[-1].t:
             return
-        if self.virtual and self._kin:
+        if self.virtual and self._branches.kin:
             for tj, f, branches in self.past[:-1]:  # the last one is the real gap's
                 lag = obs.t - tj
                 if lag > SHORT_S + 1e-6:
@@ -66,12 +66,12 @@ class EagerHgp(HgpPredictor):
                 for k in branches:
                     px, py = k.position(obs.t)
                     errs.append((px - obs.x) ** 2 + (py - obs.y) ** 2)
-                self._add_scores(0, errs)  # the short-gap class
+                self._branches.add(0, errs)  # the short-gap class
         super().update(obs)
         if len(self._obs) >= self.config.min_points:
             self._forecast = self._make_forecast(3.0)
             self.past = [*self.past[-2:], (obs.t, self._forecast,
-                                           [copy.copy(k) for k in self._kin])]
+                                           [copy.copy(k) for k in self._branches.kin])]
 
 
 def pte95(job: tuple[str, float, str]) -> tuple[str, float, str, float]:

@@ -7,7 +7,7 @@ Taken from ``bench/step.py``'s scene (500 RVs, PER 50 %) after its warm-up:
   and by ``forecast.read_many`` (what it does);
 * ``KF step``: the Kalman filter's update arithmetic (``kalman._kf_step``) in Python and
   compiled (``kalman.compiled_kf_step``), on the states of that tick's KF branches;
-* ``forecast finish``: ``hgp._finish_stack`` (switching, integration, position variance)
+* ``forecast finish``: ``hgp.stacked.finish_stack`` (switching, integration, position variance)
   on the biggest forecast batch of a tick; no "before" row: the numpy code it replaced is
   kept only as ``tests/test_hgp.py``'s reference (970 µs on e2495df, docs/hgp.md).
 
@@ -31,8 +31,8 @@ import time  # noqa: E402
 import step  # noqa: E402
 from catc.apps import SafetyApps  # noqa: E402
 from catc.cam import CamConfig, ContextAwareMap  # noqa: E402
-from catc.predict import hgp  # noqa: E402
 from catc.predict.forecast import read, read_many  # noqa: E402
+from catc.predict.hgp import stacked  # noqa: E402
 from catc.predict.kalman import KalmanPredictor, _kf_step, compiled_kf_step  # noqa: E402
 
 
@@ -57,21 +57,21 @@ def main(argv: list[str] | None = None) -> int:
     cam = ContextAwareMap(CamConfig(predictor="hgp", origin=step.ORIGIN), SafetyApps())
     for now, host, msgs in data[:89]:
         cam.step(now, host, msgs)
-    batches = []  # the last tick's forecast batches, as _finish_stack got them
-    finish = hgp._finish_stack
+    batches = []  # the last tick's forecast batches, as finish_stack got them
+    finish = stacked.finish_stack
 
-    def keep(preds, mean, var, start, grid):
-        batches.append((preds, mean.copy(), var.copy(), start.copy(), grid))
-        return finish(preds, mean, var, start, grid)
+    def keep(states, mean, var, start, grid):
+        batches.append((states, mean.copy(), var.copy(), start.copy(), grid))
+        return finish(states, mean, var, start, grid)
 
-    hgp._finish_stack = keep
+    stacked.finish_stack = keep
     now, host, msgs = data[89]
     cam.step(now, host, msgs)
-    hgp._finish_stack = finish
+    stacked.finish_stack = finish
     later = now + cam.config.horizon_s
     preds = [tr.predictor for tr in cam._tracks.values()]
     reads = [a for p in preds for a in p.plan_pair(now, later) if a.__class__ is tuple]
-    kfs = [k for p in preds for k in p._kin if isinstance(k, KalmanPredictor)]
+    kfs = [k for p in preds for k in p._branches.kin if isinstance(k, KalmanPredictor)]
     args_kf = [(0.2, k.q, k._r, k._p, k._east, k._north, k._east, k._north) for k in kfs]
     compiled = compiled_kf_step()
     big = max(batches, key=lambda b: len(b[0]))

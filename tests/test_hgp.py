@@ -177,7 +177,7 @@ def test_online_models_are_created_and_bounded():
         if k >= 30:
             p.predict(o.t + 0.5)
     assert p.stats["online_models"] > 2
-    assert len(p._online_speed) == 2
+    assert len(p._state.online_speed) == 2
 
 
 def test_direct_hgp_on_constant_velocity():
@@ -193,7 +193,7 @@ def test_direct_hgp_on_constant_velocity():
 def test_batched_slope_likelihood_equals_the_joint_gaussian():
     from scipy.stats import multivariate_normal
 
-    from catc.predict.hgp import _slope_system, lml_with_slope
+    from catc.predict.hgp.reference import lml_with_slope, slope_system
 
     rng = np.random.default_rng(4)
     tau = np.append(-np.sort(rng.uniform(0.1, 3, 9))[::-1], 0.0)
@@ -201,7 +201,7 @@ def test_batched_slope_likelihood_equals_the_joint_gaussian():
     thetas = np.array([[1.7, 0.8, 0.3], [0.5, 0.1, 0.02], [20.0, 1.5, 0.9]])
     got = lml_with_slope(tau, y, slope, 1e-2, thetas, 1e-3)
     for theta, value in zip(thetas, got, strict=True):
-        K, _ = _slope_system(tau, theta, 1e-3, 1e-2)
+        K, _ = slope_system(tau, theta, 1e-3, 1e-2)
         assert value == pytest.approx(
             multivariate_normal(np.zeros(11), K).logpdf(np.append(y, slope)), abs=1e-8)
 
@@ -223,14 +223,14 @@ def test_predictor_uses_the_cache_only_on_regular_full_windows():
     obs = drive(40, v0=12.0, a=0.5, yaw=3.0)
     for o in obs[:30]:
         p.update(o)
-    assert p._regular_cache(np.arange(-29, 1) * 0.1) is not None
-    assert p._regular_cache(np.arange(-28, 1) * 0.1) is None  # not a full window
+    assert p._state.regular_cache(np.arange(-29, 1) * 0.1) is not None
+    assert p._state.regular_cache(np.arange(-28, 1) * 0.1) is None  # not a full window
     tau = np.arange(-29, 1) * 0.1
     tau[3] += 0.05
-    assert p._regular_cache(tau) is None  # a lost message
+    assert p._state.regular_cache(tau) is None  # a lost message
     a = p.predict(3.5)
     q = HgpPredictor(BANK, HgpConfig(select_with_slopes=True))
-    q._regular_cache = lambda tau: None  # force the direct path
+    q._state.regular_cache = lambda tau: None  # force the direct path
     for o in obs[:30]:
         q.update(o)
     b = q.predict(3.5)
@@ -247,7 +247,7 @@ def test_regular_cache_belongs_to_its_bank():
     for o in obs:
         p1.update(o)
         p2.update(o)
-    c1, c2 = p1._regular_cache(tau), p2._regular_cache(tau)
+    c1, c2 = p1._state.regular_cache(tau), p2._state.regular_cache(tau)
     assert c1 is not c2
     assert not np.allclose(c1[0].Kinv, c2[0].Kinv)
 
@@ -309,7 +309,7 @@ def test_fast_forecast_equals_the_readable_formulas(overrides):
             p.update(o)
         if len(p._obs) < 4:
             continue
-        _, cache = p._prepare()
+        _, cache = p._state.prepare()
         regular += cache is not None
         irregular += cache is None
         for horizon in (3.0, 7.35):
@@ -319,8 +319,8 @@ def test_fast_forecast_equals_the_readable_formulas(overrides):
 
 def test_running_window_equals_the_observation_window():
     """The running arrays (kept across wrap-arounds of their buffer and of the heading
-    through north) give the same τ, speed and unwrapped heading as _window_series."""
-    from catc.predict.hgp import _window_series
+    through north) give the same τ, speed and unwrapped heading as window_series."""
+    from catc.predict.hgp.reference import window_series
 
     rng = np.random.default_rng(3)
     for window_s in (math.inf, 2.5):
@@ -328,8 +328,8 @@ def test_running_window_equals_the_observation_window():
         for k, o in enumerate(random_track(rng, 400, 0.3)):
             p.update(o)
             if k % 7 == 0 and len(p._obs) >= 2:
-                rel, _ = p._prepare()
-                tau, ys, yh, _, _ = _window_series(p._obs, window_s)
+                rel, _ = p._state.prepare()
+                tau, ys, yh, _, _ = window_series(p._obs, window_s)
                 n = len(tau)
                 assert rel.shape == (3, n + 1)
                 assert np.allclose(rel[:, :n], [tau, ys, yh], rtol=0.0, atol=1e-12)
@@ -339,14 +339,15 @@ def test_running_window_equals_the_observation_window():
 
 
 def test_stacked_likelihood_and_posterior_equal_the_readable_formulas():
-    from catc.predict.hgp import _lml_stack, _posterior_stack, _series_consts, lml_with_slope
+    from catc.predict.hgp import lml_with_slope
+    from catc.predict.hgp.gpstack import lml_stack, posterior_stack, series_consts
 
     rng = np.random.default_rng(8)
     cfg = HgpConfig()
     speed = np.array([[1.7, 0.8, 0.3], [0.31, 5.0, 0.02], [90.0, 1.5, 0.9]])
     heading = np.array([[3.0, 0.05, 0.05], [0.3, 2.0, 0.01], [60.0, 1e-4, 1e-5]])
     thetas = np.vstack([speed, heading])
-    consts = _series_consts(thetas, 3, cfg)
+    consts = series_consts(thetas, 3, cfg)
     grid = np.arange(31) * 0.1
     rels, pairs, wants = [], [], []
     for span in (2.9, 12.0, 80.0):  # the last underflows exp for the short γ
@@ -354,7 +355,7 @@ def test_stacked_likelihood_and_posterior_equal_the_readable_formulas():
         z = np.vstack([np.append(np.cumsum(rng.normal(size=20)) * 0.1, 0.4),
                        np.append(np.cumsum(rng.normal(size=20)) * 0.01, -0.05)])
         z[:, 19] = 0.0
-        got = _lml_stack(tau[None], z[None], consts, 3, thetas)[0]
+        got = lml_stack(tau[None], z[None], consts, 3, thetas)[0]
         wants.append(np.concatenate([
             lml_with_slope(tau, z[0, :20], z[0, 20], cfg.noise_accel, speed, cfg.noise_speed),
             lml_with_slope(tau, z[1, :20], z[1, 20], cfg.noise_yaw, heading,
@@ -363,9 +364,9 @@ def test_stacked_likelihood_and_posterior_equal_the_readable_formulas():
         rels.append(np.vstack([np.append(tau, 0.0), z]))
         pairs.append((int(rng.integers(3)), int(rng.integers(3))))
     stacked = np.stack(rels)  # several windows in one call
-    assert np.allclose(_lml_stack(stacked[:, 0, :-1], stacked[:, 1:], consts, 3, thetas),
+    assert np.allclose(lml_stack(stacked[:, 0, :-1], stacked[:, 1:], consts, 3, thetas),
                        wants, rtol=1e-12, atol=1e-8)
-    mean, var = _posterior_stack(np.stack(rels), grid,
+    mean, var = posterior_stack(np.stack(rels), grid,
                                  np.stack([consts[[i, 3 + j]] for i, j in pairs]))
     for b, (rel, (i, j)) in enumerate(zip(rels, pairs, strict=True)):
         for s, (theta, noise, slope_var) in enumerate(
@@ -378,9 +379,10 @@ def test_stacked_likelihood_and_posterior_equal_the_readable_formulas():
 
 
 def test_plausibility_bound_never_passes_a_switch():
-    """The cheap bound on the extremes never calls a forecast plausible that _implausible
+    """The cheap bound on the extremes never calls a forecast plausible that implausible
     would cut (it only skips work); forecasts built to sit near every threshold."""
-    from catc.predict.hgp import _plausible_rows
+    from catc.predict.hgp.reference import implausible
+    from catc.predict.hgp.stacked import plausible_rows
 
     rng = np.random.default_rng(2)
     p = HgpPredictor(BANK)
@@ -394,8 +396,8 @@ def test_plausibility_bound_never_passes_a_switch():
         vh = rng.uniform(0, 1, 31) * rng.uniform(0, 1.1 * math.radians(c.heading_std_max)**2)
         ext = [speed.min(), speed.max(), np.abs(np.diff(speed)).max(),
                np.abs(np.diff(head)).max(), vs.max(), vh.max()]
-        found = p._implausible(grid, speed, vs, head, vh)
-        if _plausible_rows(c, np.array([ext]))[0]:
+        found = implausible(c, grid, speed, vs, head, vh)
+        if plausible_rows(c, np.array([ext]))[0]:
             passed += 1
             assert found is None
         cut += found is not None
@@ -426,8 +428,8 @@ def test_reselection_every_k_samples_and_after_gaps():
         if len(every._obs) >= 4:
             every.predict(o.t + 0.5)
     assert every.stats["selections"] == 17
-    with pytest.raises(ValueError):
-        HgpPredictor(BANK, HgpConfig(reselect_every=0))
+    with pytest.raises(ValueError):  # checked by the configuration itself
+        HgpConfig(reselect_every=0)
 
 
 def test_reused_selection_is_the_selection_made_then():
@@ -444,8 +446,8 @@ def test_reused_selection_is_the_selection_made_then():
         if len(lazy._obs) >= 4:
             lazy.predict(o.t + 0.1)
             fresh.predict(o.t + 0.1)
-            first = first or lazy._selection
-            assert lazy._selection is first
+            first = first or lazy._state.selection
+            assert lazy._state.selection is first
     ref = fresh._make_forecast_reference(3.0)
     assert_same_forecast(fresh._make_forecast(3.0), ref)
     assert fresh.stats["selections"] > 20 and lazy.stats["selections"] == 1
@@ -533,6 +535,30 @@ def test_predict_columns_are_exactly_the_one_by_one_predictions():
         assert read_xy(f, tau) == (r.x, r.y)
 
 
+def test_the_batch_interface_is_declared_not_discovered():
+    """predict_columns and prepare_at ask the registry of catc.predict.base, by class: the
+    HGP (and its subclasses) plans and prepares, hgp-d and the kinematic ones do neither;
+    a class declaring plans without plan and plan_pair is refused."""
+    from catc.predict import make_predictor
+    from catc.predict.base import BatchSupport, batch_support, register_batch
+    from catc.predict.hgp import forecast_many_at
+
+    class Sub(HgpPredictor):
+        pass
+
+    for cls in (HgpPredictor, Sub):
+        assert batch_support(cls) == BatchSupport(forecast_many_at, plans=True)
+    for name in ("hgp-d", "ca", "kf", "imm"):
+        assert batch_support(type(make_predictor(name))) is None, name
+
+    class NoPlans:
+        pass
+
+    with pytest.raises(TypeError, match="plan"):
+        register_batch(NoPlans, plans=True)
+    assert batch_support(NoPlans) is None
+
+
 def test_branches_answer_where_their_recent_gaps_were_better():
     """A vehicle on an exact constant-acceleration path with every other BSM lost: CA
     predicts each gap's end (to the truth's integration error), the GP does not quite,
@@ -552,16 +578,17 @@ def test_branches_answer_where_their_recent_gaps_were_better():
     got, want = p.predict(last.t + 0.2), ref.predict(last.t + 0.2)
     assert (got.x, got.y, got.source) == (want.x, want.y, want.source)
     assert p.predict(last.t + 5.0).source in ("gp", "cs", "ca")
-    assert p._score[0][0] > 2.0 * p._score[0][1]  # squared errors (GP 0.4 mm, CA 0.15 mm)
+    score = p._branches.score[0]
+    assert score[0] > 2.0 * score[1]  # squared errors (GP 0.4 mm, CA 0.15 mm)
     p.reset()
-    assert p.branch(0.2) == 0 and not any(p._scored)
+    assert p.branch(0.2) == 0 and not any(p._branches.scored)
     # a branch without position() (the IMM) is scored by its predict()'s x and y
     p = HgpPredictor(BANK, HgpConfig(branches=("imm", "ca"), branch_margin=1.0))
-    assert not hasattr(p._kin[0], "position")
+    assert not hasattr(p._branches.kin[0], "position")
     for o in obs[:60:2]:
         p.update(o)
         p.predict(o.t + 0.1)
-    assert p._scored[0] > 20 and p._score[0][1] > 0.0 and p.branch(0.2) in (1, 2)
+    assert p._branches.scored[0] > 20 and p._branches.score[0][1] > 0.0 and p.branch(0.2) in (1, 2)
 
 
 def test_blend_weights_branches_by_inverse_score_and_drops_the_bad_ones():
@@ -581,7 +608,7 @@ def test_blend_weights_branches_by_inverse_score_and_drops_the_bad_ones():
             p.predict(o.t + 0.1)
         t = obs[58].t + 0.2
         got, gp, ca = p.predict(t), read(p._forecast, p._since_last(t)[1]), ref.predict(t)
-        s_gp, s_ca = p._score[0]
+        s_gp, s_ca = p._branches.score[0]
         assert s_gp > 2.0 * s_ca > 0.0
         w_ca = (1 / s_ca) / (1 / s_gp + 1 / s_ca) if ratio > 1 else 1.0
         assert got.x == pytest.approx((1 - w_ca) * gp.x + w_ca * ca.x, abs=1e-12)
@@ -603,7 +630,11 @@ def test_the_margin_can_differ_by_gap_class():
             p.predict(o.t + 0.1)
         assert p.branch(0.2) == want
     with pytest.raises(ValueError, match="one per gap class"):
-        HgpPredictor(BANK, HgpConfig(branch_margin=(1.0, 0.5)))
+        HgpConfig(branch_margin=(1.0, 0.5))
+    with pytest.raises(ValueError, match="ascending"):
+        HgpConfig(branch_edges=(1.0, 0.5))
+    with pytest.raises(ValueError, match="kinematic predictors"):
+        HgpConfig(branches=("ca", "hgp"))
 
 
 def test_before_any_scored_gap_the_gp_answers():
@@ -636,11 +667,11 @@ def test_kernel_bench_agrees_with_lapack():
 
 
 def test_compiled_row_passes_are_the_numpy_reductions():
-    """gpkernels.shift_rows (the first pass of _finish_stack) against the numpy it
+    """gpkernels.shift_rows (the first pass of finish_stack) against the numpy it
     replaced: the shifted means, the clipped variances and the extremes bit for bit,
     NaN where numpy's reductions give NaN (such a row is never plausible)."""
     from catc.predict import gpkernels
-    from catc.predict.hgp import _plausible_rows
+    from catc.predict.hgp.stacked import plausible_rows
 
     rng = np.random.default_rng(8)
     mean = rng.normal(0, 3, (40, 2, 31))
@@ -661,22 +692,22 @@ def test_compiled_row_passes_are_the_numpy_reductions():
     np.testing.assert_array_equal(ext[ok], want[ok])
     assert np.isnan(ext[3]).any() and np.isnan(ext[5]).any()
     c = HgpConfig()
-    assert _plausible_rows(c, ext).tolist() == _plausible_rows(c, want).tolist()
-    assert not _plausible_rows(c, ext)[[3, 5]].any()
+    assert plausible_rows(c, ext).tolist() == plausible_rows(c, want).tolist()
+    assert not plausible_rows(c, ext)[[3, 5]].any()
 
 
 @pytest.mark.parametrize("rule", ["trapezoid", "left"])
 def test_compiled_integration_is_the_numpy_one(rule):
-    """gpkernels.integrate_rows (positions and position variances of _finish_stack) is the
+    """gpkernels.integrate_rows (positions and position variances of finish_stack) is the
     numpy arithmetic it replaced, bit for bit: rates, trapezoid or left rule, one
     cumulative sum per quantity, heading in degrees wrapped to [0, 360)."""
     from catc.predict import gpkernels
     from catc.predict.forecast import DT
-    from catc.predict.hgp import _grid
+    from catc.predict.hgp.gpstack import forecast_grid
 
     rng = np.random.default_rng(11)
     bsz, count = 30, 31
-    _, dgrid, half = _grid(count)
+    _, dgrid, half = forecast_grid(count)
     mean = np.stack([rng.uniform(0, 30, (bsz, count)),
                      rng.normal(0, 4, (bsz, count))], axis=1)  # headings of any sign
     var = rng.uniform(0, 0.3, (bsz, 2, count))
@@ -684,7 +715,7 @@ def test_compiled_integration_is_the_numpy_one(rule):
     speed, head, vs, vh = mean[:, 0], mean[:, 1], var[:, 0], var[:, 1]
     sc = np.stack([np.sin(head), np.cos(head)], axis=1)
     eff = speed * np.exp(-0.5 * vh)
-    # the numpy passes (what _finish_stack did)
+    # the numpy passes (what finish_stack did)
     rate = np.empty((bsz, 4, count))
     np.multiply(eff[:, None], sc, out=rate[:, :2])
     rate[:, 2] = vs

@@ -27,25 +27,15 @@ from __future__ import annotations
 from collections.abc import Callable
 from functools import partial
 
-from catc.predict.base import Observation, Prediction, Predictor
+from catc.predict.base import Observation, Prediction, Predictor, batch_support
 
 
 def _factories() -> dict[str, Callable[..., Predictor]]:
     from catc.predict.hgp import HgpDirectPredictor, HgpPredictor
-    from catc.predict.imm import ImmPredictor
-    from catc.predict.kalman import KalmanPredictor
-    from catc.predict.kinematic import (
-        ConstantAccelerationPredictor,
-        ConstantSpeedPredictor,
-        CtrvPredictor,
-        HoldPredictor,
-    )
+    from catc.predict.kinematic_table import KINEMATIC
     from catc.predict.nn import NN_NAMES, NnPredictor
 
-    return {"hold": HoldPredictor, "cs": ConstantSpeedPredictor,
-            "ca": ConstantAccelerationPredictor, "kf": KalmanPredictor, "ctrv": CtrvPredictor,
-            "imm": ImmPredictor,
-            **{n: partial(NnPredictor, n) for n in NN_NAMES},
+    return {**KINEMATIC, **{n: partial(NnPredictor, n) for n in NN_NAMES},
             "hgp": HgpPredictor, "hgp-d": HgpDirectPredictor}
 
 
@@ -106,11 +96,15 @@ def prepare(predictors, t: float) -> int:
 
 def prepare_at(items) -> int:
     """:func:`prepare` with a time per predictor: ``(predictor, t)`` pairs (predictors on
-    different clocks, e.g. the vehicles of many trips replayed in lockstep)."""
-    from catc.predict import hgp, nn
-
-    items = list(items)
-    return hgp.forecast_many_at(items) + nn.forecast_many_at(items)
+    different clocks, e.g. the vehicles of many trips replayed in lockstep).  Each kind
+    of predictor is prepared by the function its class declared
+    (:func:`catc.predict.base.register_batch`), with its own pairs."""
+    groups: dict = {}
+    for item in items:
+        support = batch_support(item[0].__class__)
+        if support is not None and support.prepare is not None:
+            groups.setdefault(support.prepare, []).append(item)
+    return sum(fn(group) for fn, group in groups.items())
 
 
 def predict_columns(predictors, t0: float, t1: float):
@@ -119,7 +113,8 @@ def predict_columns(predictors, t0: float, t1: float):
     then var_x and var_y at t0; and the sources at t0.  The numbers ``predict(t0)`` and
     ``predict(t1)`` give; forecasts the answers read from (the HGP's, ``plan``) are read
     all at once (:func:`catc.predict.forecast.read_many`), both times of a predictor
-    planned in one call where it can (``plan_pair``)."""
+    planned in one call where its class is a declared
+    :class:`~catc.predict.base.BatchPredictor` (``plan_pair``)."""
     import numpy as np
 
     from catc.predict.forecast import read_many
@@ -133,12 +128,11 @@ def predict_columns(predictors, t0: float, t1: float):
     whole0, whole1 = whole
     reads0, reads1 = reads
     for i, p in enumerate(predictors):
-        pair = getattr(p, "plan_pair", None)
-        if pair is not None:
-            a, b = pair(t0, t1)
+        support = batch_support(p.__class__)
+        if support is not None and support.plans:
+            a, b = p.plan_pair(t0, t1)
         else:
-            plan = getattr(p, "plan", p.predict)
-            a, b = plan(t0), plan(t1)
+            a, b = p.predict(t0), p.predict(t1)
         if a.__class__ is tuple:  # (forecast, tau): read below, with the others
             reads0.append((i, a))
         else:

@@ -1,5 +1,6 @@
 """The predictor interface: one remote vehicle's received history in, its state at any later
-time out.
+time out; and the optional second interface of the predictors that answer many RVs at
+once (:class:`BatchPredictor`, :func:`register_batch`).
 
 A predictor is fed the observations decoded from one RV's BSMs, in arrival order, with
 the dataset time each was generated at.  When messages are lost the times are
@@ -16,6 +17,7 @@ is therefore ``(speed·sin h, speed·cos h)``.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
@@ -69,6 +71,72 @@ class Predictor(Protocol):
 
     def reset(self) -> None:
         """Forget all history."""
+
+
+#: An answer as :meth:`BatchPredictor.plan` gives it: the Prediction, or ``(forecast, tau)``
+#: to read with :func:`catc.predict.forecast.read_many` (a
+#: :class:`catc.predict.forecast.Forecast`, not named here: that module imports this one).
+Plan = Prediction | tuple[object, float]
+
+#: Makes, stacked, the forecasts a kind of predictor needs to answer ``predict(t)`` for
+#: ``(predictor, t)`` pairs (others in the list are left alone); returns how many it made.
+Preparer = Callable[[Iterable[tuple[Predictor, float]]], int]
+
+
+class BatchPredictor(Predictor, Protocol):
+    """A predictor whose answers can be planned, then read many at once.
+
+    The CA-TC asks every RV for its state at now and now + 2 s each tick (500-1,000 RVs);
+    a predictor that answers from a forecast table returns the table and the time to read
+    instead of reading it, and :func:`catc.predict.predict_columns` reads all of them in
+    one call.  ``plan(t)`` and ``plan_pair(t0, t1)`` answer exactly what ``predict`` would
+    (the same numbers, bit for bit, once read).  Declared with :func:`register_batch`.
+    """
+
+    def plan(self, t: float) -> Plan:
+        """What ``predict(t)`` answers: the Prediction, or ``(forecast, tau)``."""
+
+    def plan_pair(self, t0: float, t1: float) -> tuple[Plan, Plan]:
+        """``(plan(t0), plan(t1))`` in one call (``t0 <= t1``)."""
+
+
+@dataclass(frozen=True, slots=True)
+class BatchSupport:
+    """What a predictor class declares beyond :class:`Predictor` (:func:`register_batch`)."""
+
+    #: makes its forecasts stacked, over all the predictors of a tick (or None)
+    prepare: Preparer | None = None
+    #: it is a :class:`BatchPredictor` (``plan`` and ``plan_pair``)
+    plans: bool = False
+
+
+#: The declarations, by class (filled by the modules that define the classes).
+_DECLARED: dict[type, BatchSupport] = {}
+#: Every class asked about so far, with what it inherits (None: nothing declared).
+_RESOLVED: dict[type, BatchSupport | None] = {}
+
+
+def register_batch(cls: type, prepare: Preparer | None = None, *, plans: bool = False) -> None:
+    """Declare that predictors of class ``cls`` (and its subclasses) are prepared stacked
+    by ``prepare`` (:func:`catc.predict.prepare_at`) and, with ``plans``, implement
+    :class:`BatchPredictor` (:func:`catc.predict.predict_columns`)."""
+    if plans and not (callable(getattr(cls, "plan", None))
+                      and callable(getattr(cls, "plan_pair", None))):
+        raise TypeError(f"{cls.__name__} declares plans without plan and plan_pair")
+    _DECLARED[cls] = BatchSupport(prepare, plans)
+    _RESOLVED.clear()
+
+
+def batch_support(cls: type) -> BatchSupport | None:
+    """What ``cls`` declared with :func:`register_batch`, or inherits from the nearest
+    class that did (None: a plain :class:`Predictor`).  A dictionary lookup once a class
+    was asked about (the per-RV loops of a tick ask for every predictor)."""
+    try:
+        return _RESOLVED[cls]
+    except KeyError:
+        found = next((_DECLARED[k] for k in cls.__mro__ if k in _DECLARED), None)
+        _RESOLVED[cls] = found
+        return found
 
 
 def heading_velocity(speed: float, heading_deg: float) -> tuple[float, float]:

@@ -10,11 +10,11 @@ Here the systems of one batch are *interleaved*: element (i, j) of every system 
 by side in memory, so each scalar step of the textbook Cholesky and forward
 substitution is one loop over the systems that the compiler turns into SIMD, with no
 reductions reassociated (the arithmetic of each system is the textbook order; the
-reference formulas in :mod:`catc.predict.hgp` agree to round-off, tests/test_hgp.py).
+reference formulas in :mod:`catc.predict.hgp.reference` agree to round-off, tests/test_hgp.py).
 
 The exponentials are computed by numpy beforehand (vectorised ``exp`` is ~8 times faster
 than the scalar libm one a numba loop calls); the kernels assemble the covariances from
-them.  Model constants are the rows of :func:`catc.predict.hgp._consts`.
+them.  Model constants are the rows of :func:`catc.predict.hgp.gpstack.consts`.
 
 Packed storage: the lower triangle (i ≥ j) of an n × n matrix in row order, element (i, j)
 at i·(i+1)/2 + j (numpy's ``tril_indices`` order).
@@ -27,7 +27,7 @@ import math
 import numpy as np
 from numba import njit
 
-#: Columns of a model-constants row (:func:`catc.predict.hgp._consts` fills them): for
+#: Columns of a model-constants row (:func:`catc.predict.hgp.gpstack.consts` fills them): for
 #: θ = (γ, α1, α2), −1/(2γ²), log α1² (these two adjacent: one matrix product makes the
 #: exponents), α1², α2², var f′(0) + slope noise, value noise.
 C, LOG_S1, S1, S2, KDD, NOISE = range(6)
@@ -82,7 +82,7 @@ def _solve(a, k, nb, rhs, out):  # pragma: no cover - compiled
 @njit(**_OPTS)
 def _assemble(a, e, tau, tt_w, n, nb, s2, m2c, noise, kdd):  # pragma: no cover
     """The (n + 1) × (n + 1) covariance of n values at ``tau`` (ending at 0) and the slope
-    at 0 (catc.predict.hgp._slope_system) for nb interleaved systems on the same times,
+    at 0 (catc.predict.hgp.reference.slope_system) for nb interleaved systems on the same times,
     lower triangle: ``e`` (P, nb) the packed α1²·exp(c·d²) of the values, ``tt_w`` scratch
     (nb,).  (:func:`posterior` assembles its own: its systems have different times.)"""
     for i in range(n):
@@ -108,7 +108,7 @@ def _assemble(a, e, tau, tt_w, n, nb, s2, m2c, noise, kdd):  # pragma: no cover
 @njit(**_OPTS)
 def select_lml(e, tau, z, p, m, out, a):  # pragma: no cover - compiled
     """Log marginal likelihood of each window under each model, values and slope together
-    (catc.predict.hgp.lml_with_slope).
+    (catc.predict.hgp.reference.lml_with_slope).
 
     ``e`` (B, P, S): packed α1²·exp(c·d²) of window b under model s (P = n(n+1)/2);
     ``tau`` (B, n) each ending at 0; ``z`` (B, 2, n + 1) speed and heading values with their
@@ -151,7 +151,7 @@ def select_lml(e, tau, z, p, m, out, a):  # pragma: no cover - compiled
 @njit(**_OPTS)
 def posterior(e, rel, grid, p, mean, var, a):  # pragma: no cover - compiled
     """Posterior mean and latent variance at ``grid`` (0, Δ, 2Δ, …) of R = 2B systems, each
-    conditioned on its values and slope (catc.predict.hgp.posterior_with_slope); system
+    conditioned on its values and slope (catc.predict.hgp.reference.posterior_with_slope); system
     r = 2b + c is series c (0 speed, 1 heading) of window b.
 
     ``e`` (B, P, 2): packed α1²·exp(c·d²) of each window under its two models; ``rel``
@@ -257,7 +257,7 @@ _RAD2DEG = 180.0 / math.pi  # numpy's degrees() multiplies by this same constant
 def integrate_rows(eff, sc, mean, var, start, dgrid, half, trapezoid, dt2,
                    table):  # pragma: no cover - compiled
     """The positions and position variances of B forecasts in one pass per row
-    (catc.predict.hgp._finish_stack): what twenty numpy passes over the rows computed,
+    (catc.predict.hgp.stacked.finish_stack): what twenty numpy passes over the rows computed,
     with the same operations in the same order.  ``eff`` (B, G) the speed times the
     heading damping (or the speed), ``sc`` (B, 2, G) sin and cos of the heading, ``mean``
     and ``var`` (B, 2, G) speed and heading (rad) and their variances, ``start`` (B, 4)
@@ -303,7 +303,7 @@ def integrate_rows(eff, sc, mean, var, start, dgrid, half, trapezoid, dt2,
 
 @njit(**_OPTS)
 def shift_rows(mean, var, start, ext):  # pragma: no cover - compiled
-    """For B forecasts (catc.predict.hgp._finish_stack): add the last speed and heading
+    """For B forecasts (catc.predict.hgp.stacked.finish_stack): add the last speed and heading
     ``start[:, :2]`` to the relative means (B, 2, G), clip negative variances to 0 (NaN
     stays NaN, as numpy's maximum leaves it), and write each row's extremes to ``ext``
     (B, 6): least and greatest speed, greatest step change of speed and of heading,

@@ -61,7 +61,7 @@ from pathlib import Path
 
 import numpy as np
 
-from catc.predict.base import Observation, Prediction
+from catc.predict.base import Observation, Prediction, register_batch
 from catc.predict.forecast import (
     DT,
     Forecast,
@@ -468,3 +468,6 @@ def forecast_many_at(items: Iterable[tuple[object, float]]) -> int:
         for (p, n), s in zip(group, series, strict=True):
             p._forecast = to_forecast(s[:n], p._obs[-1], net.config.direct, p.name)
     return sum(len(g) for g in groups.values())
+
+
+register_batch(NnPredictor, forecast_many_at)

@@ -25,7 +25,8 @@ from scipy.cluster.vq import kmeans2
 from catc.mobility import Track
 from catc.predict import gp
 from catc.predict.bank import KernelBank
-from catc.predict.hgp import HgpConfig, forecast_path, integrate
+from catc.predict.forecast import integrate
+from catc.predict.hgp import HgpConfig, forecast_path
 
 DT = 0.1
 

@@ -40,78 +40,16 @@ import numpy as np
 
 from catc.channel import CAUSES, ChannelConfig
 from catc.j2735 import encode_frame
-from catc.j2735.ieee1609 import ETHERTYPE_WSMP, wrap_unsecured, wrap_wsmp
+from catc.j2735.ieee1609 import ETHERTYPE_WSMP
 from catc.replay import Plan, plan, temp_id
 from hil.capture import JsonLines, PcapngWriter, can_log, ethernet, udp_packet, versions
-from hil.config import address, percent
 from hil.datasets import load_table
 from hil.pacing import Pacer
+from rve.framing import encode_event, framing_of, wrap
+from rve.options import DEFAULTS, add_arguments
+from rve.signing import Signer, make_signer
 
-__all__ = ["DEFAULTS", "add_arguments", "run"]
-
-#: Settings when neither a flag nor the config file gives them.
-DEFAULTS = {
-    "dataset": "scenario:highway-braking", "transport": "udp", "to": ("127.0.0.1", 4500),
-    "host_to": ("127.0.0.1", 4501), "per": 0.0, "burst": 1.0, "rate": 10.0, "latency": 0.0,
-    "jitter": 0.0, "seed": 0, "speed": 1.0, "asap": False, "capture": None,
-    "duration": None, "host": None, "trip": None, "ieee1609": False, "distance": False,
-    "can_interface": "virtual", "can_channel": None, "can_fd": False, "progress": True,
-    "idm_host": None, "sign": None, "framing": None, "attack": None,
-}
-
-
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    """The flags of ``rve run`` (DESIGN.md's contract); unset ones come from --config."""
-    p.add_argument("--config", metavar="FILE.toml", help="settings file; flags override it")
-    p.add_argument("--dataset", metavar="SPEC",
-                   help="PATH, KIND:PATH or scenario:NAME (default scenario:highway-braking)")
-    p.add_argument("--trip", metavar="NAME", help="which trip of a multi-trip dataset "
-                   "(default the first)")
-    p.add_argument("--host", metavar="ID", help="host vehicle (default: the dataset's)")
-    p.add_argument("--idm-host", metavar="LEADER", help="add a synthetic host vehicle that "
-                   "follows LEADER with the IDM car-following model (catc.hostsim) and use it")
-    p.add_argument("--transport", choices=("udp", "can"), help="udp (default) or can")
-    p.add_argument("--to", type=address, help="UDP HOST:PORT of the RV frames "
-                   "(default 127.0.0.1:4500)")
-    p.add_argument("--host-to", type=address, help="UDP HOST:PORT of the host "
-                   "vehicle's frames (default 127.0.0.1:4501)")
-    p.add_argument("--per", type=percent, help="packet error rate, %% (default 0)")
-    p.add_argument("--burst", type=float, help="mean burst length in messages; 1 = "
-                   "independent losses (default 1)")
-    p.add_argument("--rate", type=float, help="transmission rate, 1-10 Hz (default 10)")
-    p.add_argument("--latency", type=float, metavar="MS", help="fixed latency, ms")
-    p.add_argument("--jitter", type=float, metavar="MS", help="each frame is delayed a "
-                   "further U(0, jitter) ms; reordering happens")
-    p.add_argument("--distance", action="store_true", default=None,
-                   help="also lose messages by HV-RV distance (catc.channel curve)")
-    p.add_argument("--seed", type=int, help="seed of the loss and jitter pattern")
-    p.add_argument("--speed", type=float, help="replay speed factor (default 1 = real time)")
-    p.add_argument("--asap", action="store_true", default=None,
-                   help="send as fast as possible (no pacing)")
-    p.add_argument("--duration", type=float, metavar="S", help="stop after S s of data")
-    p.add_argument("--capture", metavar="DIR", help="capture directory (see rve run --help)")
-    p.add_argument("--ieee1609", action="store_true", default=None,
-                   help="wrap each frame in an unsecured IEEE 1609.2 envelope "
-                        "(= --framing 1609)")
-    p.add_argument("--framing", choices=("uper", "1609", "wsmp"),
-                   help="what goes on the wire: the bare UPER MessageFrame (default), an "
-                        "IEEE 1609.2 Ieee1609Dot2Data, or that inside an IEEE 1609.3 WSMP "
-                        "WAVE Short Message (PSID 0x20); --sign implies 1609")
-    p.add_argument("--sign", metavar="PKI_DIR",
-                   help="sign every RV's BSM as IEEE 1609.2 SignedData with a pseudonym "
-                        "certificate of PKI_DIR (rve pki init); the host channel stays "
-                        "unsigned")
-    p.add_argument("--attack", action="append", metavar="KIND[:KEY=VALUE,...]",
-                   help="add a misbehaving sender (repeatable): ghost, sudden, sybil, replay, "
-                        "offset, speed, unsigned, bad-signature, foreign-cert; each message "
-                        "is labelled in rve.schedule.jsonl (catc.attacks has the parameters)")
-    p.add_argument("--can-interface", choices=("socketcan", "virtual", "udp_multicast"),
-                   help="python-can interface for --transport can (default virtual)")
-    p.add_argument("--can-channel", metavar="NAME", help="CAN channel, e.g. vcan0")
-    p.add_argument("--can-fd", action="store_true", default=None, help="CAN FD frames")
-    p.add_argument("--no-progress", dest="progress", action="store_false", default=None,
-                   help="no progress line on stderr")
-
+__all__ = ["DEFAULTS", "add_arguments", "replay", "run"]
 
 def _can_channel(args: argparse.Namespace) -> str:
     """The bus channel the CAN frames go out on, as the candump log names it."""
@@ -215,16 +153,6 @@ async def _open_sender(args: argparse.Namespace, on_frame):
                              fd=bool(args.can_fd), on_frame=on_frame)
 
 
-def make_signer(args: argparse.Namespace, the_plan: Plan) -> Signer | None:
-    """The --sign PKI's signer for this plan, or None (ValueError when it does not fit)."""
-    if not args.sign:
-        return None
-    from hil.pki import load
-
-    return Signer(load(args.sign), len(the_plan.vehicles),
-                  list(the_plan.vehicles).index(the_plan.host_id))
-
-
 async def replay(args: argparse.Namespace, the_plan: Plan,
                  lateness: list[float] | None = None,
                  signer: Signer | None = None) -> dict[str, int]:
@@ -262,8 +190,8 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
             batch = events[i:j]
             # Encode before the deadline, send at it, write the capture after the sends.
             gen_unix = time.time() + max(0.0, pacer.deadline(due) - pacer.clock())
-            encoded = [_encode(ev, the_plan, framing, signer, gen_unix,
-                               attacking.attacks if attacking else None) for ev in batch]
+            encoded = [encode_event(ev, the_plan, framing, signer, gen_unix,
+                                    attacking.attacks if attacking else None) for ev in batch]
             frames = [frame for frame, _ in encoded]
             extra = attacking.frames(batch, frames, gen_unix) if attacking else []
             await pacer.wait(due)
@@ -313,122 +241,6 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
     if attacking is not None:
         counts.update(attacking.counts)
     return counts
-
-
-class Signer:
-    """IEEE 1609.2 signing of the RVs' BSMs (``--sign``), one pseudonym per vehicle.
-
-    The signer is the full certificate in a vehicle's first BSM, then at least once per
-    second of data time, and in its next BSM after a vehicle it has not heard before
-    starts sending (SAE J2945/1's rule: a new neighbour may not know our certificate);
-    otherwise its HashedId8 digest.  The decisions follow the data's clock, so a run
-    repeats them exactly; generationTime is the wall-clock deadline of the frame.
-    """
-
-    CERT_PERIOD_S = 1.0
-
-    def __init__(self, pki, n_vehicles: int, host_index: int) -> None:
-        from catc.security import unix_to_time64
-
-        rvs = n_vehicles - 1
-        if len(pki.pseudonyms) < rvs:
-            raise ValueError(f"--sign {pki.directory}: {len(pki.pseudonyms)} pseudonym "
-                             f"certificates for {rvs} remote vehicles (rve pki init "
-                             f"--vehicles {rvs})")
-        self.to_time64 = unix_to_time64
-        others = [i for i in range(n_vehicles) if i != host_index]
-        self.identity = {v: pki.pseudonyms[k] for k, v in enumerate(others)}
-        self.last_cert: dict = {}
-        self.owed: set = set()
-        self.heard: set = set()
-        self.counts = {"signed": 0, "with_certificate": 0}
-        # the attackers' identities: an insider holds the PKI's first pseudonym that no RV
-        # uses; an outsider, a pseudonym of the untrusted foreign PKI
-        self.insider = pki.pseudonyms[rvs] if len(pki.pseudonyms) > rvs else None
-        self.outsider = pki.foreign[0] if pki.foreign else None
-        self.directory = pki.directory
-
-    def attacker(self, who: str):
-        """The (certificate, key) of an ``insider`` or ``outsider`` attacker."""
-        ident = self.insider if who == "insider" else self.outsider
-        if ident is None:
-            raise ValueError(
-                f"--sign {self.directory}: no {who} identity for the attack ("
-                + ("rve pki init --vehicles N with N > the number of RVs)" if who == "insider"
-                   else "the PKI has no foreign/ directory)"))
-        return ident
-
-    def sign(self, vehicle, frame: bytes, t: float, gen_unix: float,
-             identity=None) -> bytes:
-        """``frame`` signed by ``vehicle``'s pseudonym (or ``identity``, an attacker's
-        (certificate, key), for a fabricated sender ``vehicle``)."""
-        from catc.security import sign_bsm
-
-        if vehicle not in self.heard:  # a new sender: everybody else owes its certificate
-            self.heard.add(vehicle)
-            self.owed.update(v for v in self.heard if v != vehicle)
-        last = self.last_cert.get(vehicle)
-        full = last is None or t - last >= self.CERT_PERIOD_S - 1e-9 or vehicle in self.owed
-        if full:
-            self.last_cert[vehicle] = t
-            self.owed.discard(vehicle)
-            self.counts["with_certificate"] += 1
-        cert, key = identity or self.identity[vehicle]
-        self.counts["signed"] += 1
-        return sign_bsm(frame, key, cert, self.to_time64(gen_unix), include_cert=full)
-
-
-def framing_of(args: argparse.Namespace) -> str:
-    """``uper``, ``1609`` or ``wsmp`` from --framing, --ieee1609 and --sign."""
-    framing = args.framing or ("1609" if args.ieee1609 or args.sign else "uper")
-    if args.sign and framing == "uper":
-        raise ValueError("--sign needs an IEEE 1609.2 envelope: --framing 1609 or wsmp")
-    return framing
-
-
-def _frame(ev, the_plan: Plan, framing: bool | str, signer: Signer | None = None,
-           gen_unix: float | None = None) -> bytes | None:
-    """The wire frame of one event (None when the channel drops it): the UPER
-    MessageFrame, in a 1609.2 envelope (signed for RVs with ``signer``) and a WSMP one as
-    ``framing`` says (True/False: 1609/uper)."""
-    return _encode(ev, the_plan, framing, signer, gen_unix, None)[0]
-
-
-def _wrap(frame: bytes, framing: str, signed: bytes | None) -> bytes:
-    """A UPER frame in the envelopes of ``framing``: ``signed`` (its SignedData) or else
-    an unsecured 1609.2 envelope, then WSMP when asked for."""
-    if framing == "uper":
-        return frame
-    frame = signed if signed is not None else wrap_unsecured(frame)
-    return wrap_wsmp(frame) if framing == "wsmp" else frame
-
-
-def _encode(ev, the_plan: Plan, framing: bool | str, signer: Signer | None,
-            gen_unix: float | None, attacks) -> tuple[bytes | None, object | None]:
-    """:func:`_frame`, with the attacks on this event's vehicle applied: (frame, the
-    :class:`catc.attacks.Attack` that changed it or None)."""
-    if ev["dropped"]:
-        return None, None
-    framing = {True: "1609", False: "uper"}.get(framing, framing)
-    bsm = the_plan.bsm(ev)
-    vehicle, t, label = int(ev["vehicle"]), float(ev["t"]), None
-    if attacks is not None and not ev["host"]:
-        bsm, label = attacks.modify(vehicle, t, bsm)
-    frame = encode_frame(bsm)
-    if framing == "uper" or signer is None or ev["host"]:
-        return _wrap(frame, framing, None), label
-    gen = time.time() if gen_unix is None else gen_unix
-    sec = attacks.security(vehicle, t) if attacks is not None else None
-    if sec is not None:
-        label = sec
-        if sec.kind == "unsigned":
-            return _wrap(frame, framing, None), label
-        if sec.kind == "foreign-cert":
-            return _wrap(frame, framing, signer.sign(("foreign", vehicle), frame, t, gen,
-                                                     signer.attacker("outsider"))), label
-        signed = signer.sign(vehicle, frame, t, gen)  # bad-signature: one bit of sSig
-        return _wrap(frame, framing, signed[:-1] + bytes([signed[-1] ^ 0x01])), label
-    return _wrap(frame, framing, signer.sign(vehicle, frame, t, gen)), label
 
 
 class _Attacking:
@@ -496,7 +308,7 @@ class _Attacking:
                                               gen_unix, self.signer.attacker(who))
                 record = self._record(inj.attack, f"attack-{inj.index}",
                                       f"{inj.bsm.temp_id:08X}", t, inj.bsm.msg_cnt)
-                out.append((_wrap(frame, self.framing, signed), record))
+                out.append((wrap(frame, self.framing, signed), record))
         self.counts["attack_frames"] += len(out)
         return out
 

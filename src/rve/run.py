@@ -24,101 +24,32 @@ Errors: a bad dataset, flag or config file prints one line and exits 2, and so d
 unreachable address or bus.  SIGINT and SIGTERM stop the replay, flush and exit 0.
 """
 
+
 from __future__ import annotations
 
 import argparse
 import asyncio
-import dataclasses
 import json
 import signal
 import sys
 import time
 from collections import deque
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from catc.channel import CAUSES, ChannelConfig
-from catc.j2735 import encode_frame
-from catc.j2735.ieee1609 import ETHERTYPE_WSMP
+from catc.channel import ChannelConfig
 from catc.replay import Plan, plan, temp_id
-from hil.capture import JsonLines, PcapngWriter, can_log, ethernet, udp_packet, versions
 from hil.datasets import load_table
 from hil.pacing import Pacer
-from rve.framing import encode_event, framing_of, wrap
+from rve.attacking import Attacking
+from rve.capture import Capture
+from rve.framing import encode_event, framing_of
 from rve.options import DEFAULTS, add_arguments
 from rve.signing import Signer, make_signer
 
 __all__ = ["DEFAULTS", "add_arguments", "replay", "run"]
-
-def _can_channel(args: argparse.Namespace) -> str:
-    """The bus channel the CAN frames go out on, as the candump log names it."""
-    if args.can_channel:
-        return str(args.can_channel)
-    from hil.transport.can import DEFAULT_CHANNELS
-
-    return DEFAULT_CHANNELS.get(args.can_interface, "can0")
-
-
-class _Capture:
-    """The RVE's capture files (module docstring)."""
-
-    def __init__(self, directory: Path, the_plan: Plan, args: argparse.Namespace) -> None:
-        self.dir = directory
-        directory.mkdir(parents=True, exist_ok=True)
-        self.schedule = JsonLines(directory / "rve.schedule.jsonl")
-        self.truth = JsonLines(directory / "rve.truth.jsonl")
-        self.wsmp = framing_of(args) == "wsmp"  # the pcapng gets Ethernet/0x88DC frames
-        self.pcap = PcapngWriter(directory / "rve.frames.pcapng") \
-            if args.transport == "udp" else None
-        self.canlog = can_log(directory / "rve.frames", _can_channel(args)) \
-            if args.transport == "can" else None
-        table = the_plan.table
-        config = {
-            "settings": {k: (list(v) if isinstance(v, tuple) else v)
-                         for k, v in vars(args).items() if k not in ("func",)},
-            "versions": versions(),
-            "dataset": {"name": table.name, "kind": table.kind, "origin": table.origin},
-            "host": the_plan.host_id,
-            "vehicles": {v: f"{temp_id(v):08X}" for v in the_plan.vehicles},
-            "channel": dataclasses.asdict(the_plan.config),
-            "seed": the_plan.seed,
-            "started_unix": time.time(),
-        }
-        with open(directory / "rve.config.json", "w", encoding="utf-8") as f:
-            json.dump(config, f, indent=1, default=str)
-        self._truth_pos = {v: 0 for v in the_plan.vehicles}
-
-    def write_truth(self, the_plan: Plan, up_to: float) -> None:
-        """Truth rows of every vehicle for samples generated at or before ``up_to``."""
-        for v in the_plan.vehicles:
-            tr = the_plan.table.tracks[v]
-            lo = self._truth_pos[v]
-            hi = int(np.searchsorted(tr.t, up_to + 1e-9, side="right"))
-            for i in range(lo, hi):
-                self.truth.write({
-                    "vehicle": v, "id": f"{temp_id(v):08X}", "index": i, "t": float(tr.t[i]),
-                    "lat": float(tr.lat[i]), "lon": float(tr.lon[i]), "x": float(tr.x[i]),
-                    "y": float(tr.y[i]), "speed": float(tr.speed[i]),
-                    "heading": float(tr.heading[i]), "accel": float(tr.accel[i]),
-                    "yaw_rate": float(tr.yaw_rate[i]), "host": v == the_plan.host_id})
-            self._truth_pos[v] = hi
-
-    def flush(self) -> None:
-        self.schedule.flush()
-        self.truth.flush()
-        if self.pcap is not None:
-            self.pcap.flush()
-        if self.canlog is not None:
-            self.canlog.flush()
-
-    def close(self) -> None:
-        self.schedule.close()
-        self.truth.close()
-        if self.pcap is not None:
-            self.pcap.close()
-        if self.canlog is not None:
-            self.canlog.stop()
 
 
 class _Progress:
@@ -161,8 +92,9 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
     signs the RVs' frames (made from ``args.sign`` when not given)."""
     framing = framing_of(args)
     signer = signer or make_signer(args, the_plan)
-    attacking = _Attacking(args, the_plan, signer, framing) if args.attack else None
-    cap = _Capture(Path(args.capture), the_plan, args) if args.capture else None
+    attacking = Attacking(args, the_plan, signer, framing) if args.attack else None
+    attacks = attacking.attacks if attacking else None
+    cap = Capture(Path(args.capture), the_plan, args) if args.capture else None
     on_frame = cap.canlog.on_message_received if cap is not None and cap.canlog else None
     sender = await _open_sender(args, on_frame)
     stop = asyncio.Event()
@@ -174,10 +106,11 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
     t0 = float(events["time"][0]) if len(events) else 0.0
     pacer = Pacer(t0, None if args.asap else args.speed)
     progress = _Progress(args.progress)
-    # where each channel's datagrams come from, for the pcapng (the sockets' own ports)
-    src = dict(getattr(sender, "local", {}))
-    src.setdefault("rv", ("127.0.0.1", 0))
-    src.setdefault("host", src["rv"])
+    if cap is not None:  # where each channel's datagrams come from: the sockets' own ports
+        src = dict(getattr(sender, "local", {}))
+        src.setdefault("rv", ("127.0.0.1", 0))
+        src.setdefault("host", src["rv"])
+        cap.sources(src)
     counts = {"sent": 0, "dropped": 0, "host": 0}
     times = events["time"].tolist()
     try:
@@ -190,8 +123,8 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
             batch = events[i:j]
             # Encode before the deadline, send at it, write the capture after the sends.
             gen_unix = time.time() + max(0.0, pacer.deadline(due) - pacer.clock())
-            encoded = [encode_event(ev, the_plan, framing, signer, gen_unix,
-                                    attacking.attacks if attacking else None) for ev in batch]
+            encoded = [encode_event(ev, the_plan, framing, signer, gen_unix, attacks)
+                       for ev in batch]
             frames = [frame for frame, _ in encoded]
             extra = attacking.frames(batch, frames, gen_unix) if attacking else []
             await pacer.wait(due)
@@ -216,10 +149,13 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
                 await sender.send(attack_frame)
                 extra_at.append(stamp())
             for ev, (frame, label), when in zip(batch, encoded, sent_at, strict=True):
-                _account(ev, frame, when, the_plan, args, cap, counts, tids, src, lateness,
-                         label)
-            for (attack_frame, record), when in zip(extra, extra_at, strict=True):
-                _account_attack(record, attack_frame, when, args, cap, src)
+                _account(ev, frame, when, counts, lateness)
+                if cap is not None:
+                    v = int(ev["vehicle"])
+                    cap.write_event(ev, the_plan.vehicles[v], tids[v], frame, when, label)
+            if cap is not None:
+                for (attack_frame, record), when in zip(extra, extra_at, strict=True):
+                    cap.write_attack(record, attack_frame, when)
             progress.update(due, t0, counts["sent"], counts["dropped"],
                             max((w[1] for w in sent_at if w is not None), default=0.0))
             if cap is not None and bool(events["host"][j - 1]):
@@ -243,86 +179,9 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
     return counts
 
 
-class _Attacking:
-    """The RVE's side of ``--attack``: fabricated and replayed frames for each batch, and
-    their schedule records."""
-
-    def __init__(self, args: argparse.Namespace, the_plan: Plan, signer: Signer | None,
-                 framing: str) -> None:
-        from catc.attacks import SECURITY, Attacks, parse
-
-        specs = [parse(text) for text in args.attack]
-        if signer is None:
-            bad = [a.kind for a in specs if a.kind in SECURITY]
-            if bad:
-                raise ValueError(f"--attack {bad[0]} needs --sign PKI_DIR")
-        else:
-            for a in specs:
-                if a.kind in ("ghost", "sudden"):
-                    signer.attacker(a["signer"])  # fail now, in one line, if it is missing
-                if a.kind == "foreign-cert":
-                    signer.attacker("outsider")
-        self.attacks = Attacks(specs, the_plan)
-        self.plan, self.signer, self.framing = the_plan, signer, framing
-        # what a replay attacker heard: replayed vehicle -> {ms of t: (frame, seq)}, kept
-        # for the longest replay delay only
-        self.replayed: dict[int, float] = {}
-        for k, a in enumerate(specs):
-            if a.kind == "replay":
-                v = self.attacks.targets[k]
-                self.replayed[v] = max(a["delay"], self.replayed.get(v, 0.0))
-        self.history: dict[int, dict] = {v: {} for v in self.replayed}
-        self.counts = {"attack_frames": 0}
-
-    def frames(self, batch, frames: list, gen_unix: float) -> list[tuple[bytes, dict]]:
-        """The attack frames to send with ``batch`` (after its RV frames, before the host
-        frame), each with its schedule record."""
-        out = []
-        for ev, frame in zip(batch, frames, strict=True):
-            if ev["host"]:
-                continue
-            v, t = int(ev["vehicle"]), float(ev["t"])
-            if v not in self.history:
-                continue
-            heard = self.history[v]
-            if frame is not None:
-                heard[round(t * 1000)] = (frame, int(ev["seq"]))
-                oldest = round((t - self.replayed[v]) * 1000)
-                for ms in [ms for ms in heard if ms < oldest]:
-                    del heard[ms]
-            for a in self.attacks.replays(v, t):
-                old = heard.get(round((t - a["delay"]) * 1000))
-                if old is not None:
-                    name = self.plan.vehicles[v]
-                    out.append((old[0], self._record(a, name, f"{temp_id(name):08X}",
-                                                     t - a["delay"], old[1])))
-        host = [ev for ev in batch if ev["host"]]
-        if host:
-            t = float(host[0]["t"])
-            for inj in self.attacks.injected(t):
-                frame = encode_frame(inj.bsm)
-                signed = None
-                if self.signer is not None and self.framing != "uper":
-                    who = inj.attack["signer"] if "signer" in inj.attack.params else "insider"
-                    signed = self.signer.sign(("attack", inj.bsm.temp_id), frame, t,
-                                              gen_unix, self.signer.attacker(who))
-                record = self._record(inj.attack, f"attack-{inj.index}",
-                                      f"{inj.bsm.temp_id:08X}", t, inj.bsm.msg_cnt)
-                out.append((wrap(frame, self.framing, signed), record))
-        self.counts["attack_frames"] += len(out)
-        return out
-
-    @staticmethod
-    def _record(a, vehicle: str, tid: str, t: float, seq: int | None) -> dict:
-        return {"vehicle": vehicle, "id": tid, "channel": "rv", "index": -1,
-                "seq": -1 if seq is None else seq, "t": t, "dropped": False,
-                "cause": "attack", "delay": 0.0, "attack": a.kind,
-                **({"signer": a["signer"]} if "signer" in a.params else {})}
-
-
-def _account(ev, frame, when, the_plan: Plan, args, cap, counts, tids, src,
-             lateness: list[float] | None, attack=None) -> None:
-    """Counters, lateness and capture records of one event after its batch was sent."""
+def _account(ev: Any, frame: bytes | None, when: tuple[float, float] | None,
+             counts: dict[str, int], lateness: list[float] | None) -> None:
+    """The counters and lateness of one event after its batch was sent."""
     host = bool(ev["host"])
     if frame is None:
         counts["dropped"] += 1
@@ -330,46 +189,6 @@ def _account(ev, frame, when, the_plan: Plan, args, cap, counts, tids, src,
         counts["host" if host else "sent"] += 1
         if lateness is not None and not host:
             lateness.append(when[1])
-    if cap is None:
-        return
-    record = {"vehicle": the_plan.vehicles[int(ev["vehicle"])],
-              "id": f"{tids[int(ev['vehicle'])]:08X}", "channel": "host" if host else "rv",
-              "index": int(ev["index"]), "seq": int(ev["seq"]), "t": float(ev["t"]),
-              "dropped": bool(ev["dropped"]), "cause": CAUSES[int(ev["cause"])],
-              "delay": None if ev["dropped"] else float(ev["delay"])}
-    if attack is not None:
-        record["attack"] = attack.kind
-    if frame is not None:
-        record.update(sent_unix=when[0], late_ms=round(when[1] * 1000.0, 4),
-                      octets=len(frame))
-        if cap.pcap is not None:
-            channel = "host" if host else "rv"
-            _pcap(cap, args, src, channel, tids[int(ev["vehicle"])], frame, when[0])
-    cap.schedule.write(record)
-
-
-def _pcap(cap, args, src, channel: str, tid: int, frame: bytes, t_unix: float) -> None:
-    """One sent frame into the pcapng: as a UDP datagram, or with --framing wsmp as it
-    goes over the air (Ethernet II, ethertype 0x88DC, from a MAC made of the sender's
-    TemporaryID)."""
-    if cap.wsmp:
-        mac = b"\x02\x00" + tid.to_bytes(4, "big")
-        cap.pcap.write(ethernet(b"\xff" * 6, mac, ETHERTYPE_WSMP, frame), t_unix,
-                       cap.pcap.ETHERNET)
-    else:
-        cap.pcap.write(udp_packet(src[channel], args.host_to if channel == "host" else args.to,
-                                  frame), t_unix)
-
-
-def _account_attack(record: dict, frame: bytes, when, args, cap, src) -> None:
-    """The schedule record (labelled with its attack) and capture of an attack frame."""
-    if cap is None:
-        return
-    record = dict(record, sent_unix=when[0], late_ms=round(when[1] * 1000.0, 4),
-                  octets=len(frame))
-    if cap.pcap is not None:
-        _pcap(cap, args, src, "rv", int(record["id"], 16), frame, when[0])
-    cap.schedule.write(record)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -392,7 +211,7 @@ def run(args: argparse.Namespace) -> int:
         framing_of(args)
         signer = make_signer(args, the_plan)
         if args.attack:
-            _Attacking(args, the_plan, signer, framing_of(args))  # one line if it cannot be
+            Attacking(args, the_plan, signer, framing_of(args))  # one line if it cannot be
     except ValueError as err:  # hil.pki.PkiError included
         print(f"rve run: {err}", file=sys.stderr)
         return 2

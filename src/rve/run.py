@@ -33,11 +33,8 @@ import json
 import signal
 import sys
 import time
-from collections import deque
 from pathlib import Path
 from typing import Any
-
-import numpy as np
 
 from catc.channel import ChannelConfig
 from catc.replay import Plan, plan, temp_id
@@ -47,32 +44,10 @@ from rve.attacking import Attacking
 from rve.capture import Capture
 from rve.framing import encode_event, framing_of
 from rve.options import DEFAULTS, add_arguments
+from rve.progress import Progress
 from rve.signing import Signer, make_signer
 
 __all__ = ["DEFAULTS", "add_arguments", "replay", "run"]
-
-
-class _Progress:
-    """A status line on stderr every second: dataset time, sent, dropped, lateness."""
-
-    def __init__(self, enabled: bool) -> None:
-        self.enabled = enabled
-        self.tty = sys.stderr.isatty()
-        self.last = time.monotonic()
-        self.late: deque[float] = deque(maxlen=5000)
-
-    def update(self, t: float, t0: float, sent: int, dropped: int, late_s: float,
-               final: bool = False) -> None:
-        self.late.append(late_s)
-        now = time.monotonic()
-        if not self.enabled or (now - self.last < 1.0 and not final):
-            return
-        self.last = now
-        p99 = 1000 * float(np.percentile(self.late, 99)) if self.late else 0.0
-        line = (f"rve: t={t - t0:8.1f} s  sent {sent}  dropped {dropped}  "
-                f"late p99 {p99:.2f} ms")
-        sys.stderr.write(("\r" + line) if self.tty and not final else (line + "\n"))
-        sys.stderr.flush()
 
 
 async def _open_sender(args: argparse.Namespace, on_frame):
@@ -105,7 +80,7 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
     tids = [temp_id(v) for v in the_plan.vehicles]
     t0 = float(events["time"][0]) if len(events) else 0.0
     pacer = Pacer(t0, None if args.asap else args.speed)
-    progress = _Progress(args.progress)
+    progress = Progress(args.progress, t0, float(events["time"][-1]) if len(events) else t0)
     if cap is not None:  # where each channel's datagrams come from: the sockets' own ports
         src = dict(getattr(sender, "local", {}))
         src.setdefault("rv", ("127.0.0.1", 0))
@@ -156,7 +131,7 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
             if cap is not None:
                 for (attack_frame, record), when in zip(extra, extra_at, strict=True):
                     cap.write_attack(record, attack_frame, when)
-            progress.update(due, t0, counts["sent"], counts["dropped"],
+            progress.update(due, counts["sent"], counts["dropped"],
                             max((w[1] for w in sent_at if w is not None), default=0.0))
             if cap is not None and bool(events["host"][j - 1]):
                 cap.write_truth(the_plan, due)
@@ -170,7 +145,7 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
             cap.flush()
             cap.close()
         last = float(events["time"][min(i, len(events) - 1)]) if len(events) else 0.0
-        progress.update(last, t0, counts["sent"], counts["dropped"], 0.0, final=True)
+        progress.update(last, counts["sent"], counts["dropped"], 0.0, final=True)
     counts["interrupted"] = int(stop.is_set())
     if signer is not None:
         counts.update(signer.counts)

@@ -219,6 +219,24 @@ def test_config_file_and_flags_override(tmp_path):
     assert out.returncode == 2 and "unknown setting" in out.stderr
 
 
+def test_progress_on_a_pipe_is_one_line_per_redraw():
+    """Without a terminal the tqdm bar is plain lines (no carriage returns), the last one
+    at 100 % with the run's counters."""
+    sink = UdpSink()
+    try:
+        out = _run("--dataset", _openacc(), "--duration", "2", "--asap", "--to",
+                   f"127.0.0.1:{sink.ports[0]}", "--host-to", f"127.0.0.1:{sink.ports[1]}")
+    finally:
+        sink.close()
+    assert out.returncode == 0, out.stderr
+    summary = json.loads(out.stdout)
+    lines = out.stderr.splitlines()
+    assert "\r" not in out.stderr and lines
+    assert all(line.startswith("rve: ") for line in lines)
+    assert lines[-1].startswith("rve: 100%")
+    assert f"sent {summary['sent']}, dropped {summary['dropped']}, late p99" in lines[-1]
+
+
 def test_frames_decode_as_real_j2735():
     sink = UdpSink()
     try:

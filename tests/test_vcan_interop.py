@@ -38,7 +38,7 @@ from catc.j2735.sniff import extract_frames
 from catc.replay import plan
 from hil.datasets import load_table
 from hil.transport.can import HOST_IDS, RV_IDS
-from rve.run import _frame
+from rve.framing import wire_frame
 from tests.conftest import shared_path
 from tests.test_rve_can import BURST, PER, SEED, _dataset, _expected
 from tests.test_transport import vcan_interface
@@ -122,8 +122,8 @@ def test_kernel_isotp_receives_exactly_the_rves_schedule_and_candump_agrees(vcan
     _need("candump", "isotprecv")
     the_plan, want_rv, want_host = _expected(DURATION)
     ev = the_plan.events[~the_plan.events["dropped"]]
-    want = {"rv": sorted(_frame(e, the_plan, False) for e in ev if not e["host"]),
-            "host": sorted(_frame(e, the_plan, False) for e in ev if e["host"])}
+    want = {"rv": sorted(wire_frame(e, the_plan, False) for e in ev if not e["host"]),
+            "host": sorted(wire_frame(e, the_plan, False) for e in ev if e["host"])}
     rv_out, host_out, dump = tmp_path / "rv.txt", tmp_path / "host.txt", tmp_path / "dump.log"
     with (_tool(["candump", "-L", vcan], dump),
           _tool(["isotprecv", "-l", *_ll_opts(fd), "-s", f"{RV_IDS[1]:03X}",
@@ -207,7 +207,7 @@ def test_kernel_isotp_sends_real_bsms_to_the_obu(vcan, fd, tmp_path):
     deployed OBU's log (up to 200 octets: multi-frame on CAN FD too), all from the kernel's
     ISO-TP into ``obu run``."""
     the_plan = plan(load_table(_dataset(), None), ChannelConfig(), SEED, None, DURATION)
-    replay = [(bool(e["host"]), _frame(e, the_plan, False)) for e in the_plan.events]
+    replay = [(bool(e["host"]), wire_frame(e, the_plan, False)) for e in the_plan.events]
     deployed = [x.frame for x in extract_frames(
         shared_path("jpo-ode-bsm-vectors", "rxMsg_BSM.bin").read_bytes())
         if x.frame[:2] == b"\x00\x14"]  # the log's BSMs (messageId 20)

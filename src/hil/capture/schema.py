@@ -10,6 +10,7 @@ read what these build.  JSON-lines files are append-only and flushed once per ti
 file                     writer  one record per ...
 =======================  ======  ==============================================================
 ``rve.config.json``      RVE     run: settings, versions, dataset, host, vehicle ids, channel
+                                 (:func:`rve_config`)
 ``rve.truth.jsonl``      RVE     vehicle and 10 Hz sample: the true state (:func:`truth`)
 ``rve.schedule.jsonl``   RVE     scheduled message: the channel's decision, and when it was
                                  sent (:func:`scheduled`)
@@ -41,8 +42,8 @@ from catc.bsm import msg_cnt, sec_mark
 __all__ = [
     "OBU_CONFIG", "OBU_COUNTERS", "OBU_EVENTS", "OBU_MBR", "OBU_RX", "OBU_TICKS",
     "OBU_TRACKS", "RVE_CAN_STEM", "RVE_CONFIG", "RVE_PCAPNG", "RVE_SCHEDULE", "RVE_TRUTH",
-    "event", "hex_id", "message_key", "received", "received_key", "report", "scheduled",
-    "scheduled_key", "sent", "settings", "tick", "track_rows", "truth",
+    "event", "hex_id", "message_key", "received", "received_key", "report", "rve_config",
+    "scheduled", "scheduled_key", "sent", "settings", "tick", "track_rows", "truth",
 ]
 
 RVE_CONFIG = "rve.config.json"
@@ -90,6 +91,20 @@ def settings(args: Any) -> dict[str, Any]:
 
 
 # --- the RVE's records ------------------------------------------------------------------
+
+def rve_config(settings: dict[str, Any], versions: dict[str, str], dataset: tuple[str, str, Any],
+               host: str, ids: dict[str, int], channel: dict[str, Any], seed: int,
+               started_unix: float) -> dict[str, Any]:
+    """The RVE's run (``rve.config.json``): its :func:`settings` and software
+    ``versions``, the dataset's (name, kind, ENU origin), the host vehicle, every
+    vehicle's TemporaryID (``ids``), the channel model's settings and seed, and when the
+    run started (wall clock)."""
+    name, kind, origin = dataset
+    return {"settings": settings, "versions": versions,
+            "dataset": {"name": name, "kind": kind, "origin": origin}, "host": host,
+            "vehicles": {v: hex_id(tid) for v, tid in ids.items()}, "channel": channel,
+            "seed": seed, "started_unix": started_unix}
+
 
 def truth(vehicle: str, temp_id: int, index: int, t: float, lat: float, lon: float,
           x: float, y: float, speed: float, heading: float, accel: float, yaw_rate: float,

@@ -1,0 +1,76 @@
+"""The settings of ``rve run``: its flags and their defaults (DESIGN.md's contract).
+
+A flag left unset is ``None`` here and comes from ``--config`` or :data:`DEFAULTS`
+(:func:`hil.config.run_daemon` merges them).
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from hil.config import address, percent
+
+__all__ = ["DEFAULTS", "add_arguments"]
+
+#: Settings when neither a flag nor the config file gives them.
+DEFAULTS = {
+    "dataset": "scenario:highway-braking", "transport": "udp", "to": ("127.0.0.1", 4500),
+    "host_to": ("127.0.0.1", 4501), "per": 0.0, "burst": 1.0, "rate": 10.0, "latency": 0.0,
+    "jitter": 0.0, "seed": 0, "speed": 1.0, "asap": False, "capture": None,
+    "duration": None, "host": None, "trip": None, "ieee1609": False, "distance": False,
+    "can_interface": "virtual", "can_channel": None, "can_fd": False, "progress": True,
+    "idm_host": None, "sign": None, "framing": None, "attack": None,
+}
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of ``rve run`` (DESIGN.md's contract); unset ones come from --config."""
+    p.add_argument("--config", metavar="FILE.toml", help="settings file; flags override it")
+    p.add_argument("--dataset", metavar="SPEC",
+                   help="PATH, KIND:PATH or scenario:NAME (default scenario:highway-braking)")
+    p.add_argument("--trip", metavar="NAME", help="which trip of a multi-trip dataset "
+                   "(default the first)")
+    p.add_argument("--host", metavar="ID", help="host vehicle (default: the dataset's)")
+    p.add_argument("--idm-host", metavar="LEADER", help="add a synthetic host vehicle that "
+                   "follows LEADER with the IDM car-following model (catc.hostsim) and use it")
+    p.add_argument("--transport", choices=("udp", "can"), help="udp (default) or can")
+    p.add_argument("--to", type=address, help="UDP HOST:PORT of the RV frames "
+                   "(default 127.0.0.1:4500)")
+    p.add_argument("--host-to", type=address, help="UDP HOST:PORT of the host "
+                   "vehicle's frames (default 127.0.0.1:4501)")
+    p.add_argument("--per", type=percent, help="packet error rate, %% (default 0)")
+    p.add_argument("--burst", type=float, help="mean burst length in messages; 1 = "
+                   "independent losses (default 1)")
+    p.add_argument("--rate", type=float, help="transmission rate, 1-10 Hz (default 10)")
+    p.add_argument("--latency", type=float, metavar="MS", help="fixed latency, ms")
+    p.add_argument("--jitter", type=float, metavar="MS", help="each frame is delayed a "
+                   "further U(0, jitter) ms; reordering happens")
+    p.add_argument("--distance", action="store_true", default=None,
+                   help="also lose messages by HV-RV distance (catc.channel curve)")
+    p.add_argument("--seed", type=int, help="seed of the loss and jitter pattern")
+    p.add_argument("--speed", type=float, help="replay speed factor (default 1 = real time)")
+    p.add_argument("--asap", action="store_true", default=None,
+                   help="send as fast as possible (no pacing)")
+    p.add_argument("--duration", type=float, metavar="S", help="stop after S s of data")
+    p.add_argument("--capture", metavar="DIR", help="capture directory (see rve run --help)")
+    p.add_argument("--ieee1609", action="store_true", default=None,
+                   help="wrap each frame in an unsecured IEEE 1609.2 envelope "
+                        "(= --framing 1609)")
+    p.add_argument("--framing", choices=("uper", "1609", "wsmp"),
+                   help="what goes on the wire: the bare UPER MessageFrame (default), an "
+                        "IEEE 1609.2 Ieee1609Dot2Data, or that inside an IEEE 1609.3 WSMP "
+                        "WAVE Short Message (PSID 0x20); --sign implies 1609")
+    p.add_argument("--sign", metavar="PKI_DIR",
+                   help="sign every RV's BSM as IEEE 1609.2 SignedData with a pseudonym "
+                        "certificate of PKI_DIR (rve pki init); the host channel stays "
+                        "unsigned")
+    p.add_argument("--attack", action="append", metavar="KIND[:KEY=VALUE,...]",
+                   help="add a misbehaving sender (repeatable): ghost, sudden, sybil, replay, "
+                        "offset, speed, unsigned, bad-signature, foreign-cert; each message "
+                        "is labelled in rve.schedule.jsonl (catc.attacks has the parameters)")
+    p.add_argument("--can-interface", choices=("socketcan", "virtual", "udp_multicast"),
+                   help="python-can interface for --transport can (default virtual)")
+    p.add_argument("--can-channel", metavar="NAME", help="CAN channel, e.g. vcan0")
+    p.add_argument("--can-fd", action="store_true", default=None, help="CAN FD frames")
+    p.add_argument("--no-progress", dest="progress", action="store_false", default=None,
+                   help="no progress line on stderr")

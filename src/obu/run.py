@@ -63,9 +63,10 @@ from catc.errors import DecodeError
 from catc.j2735 import decode_frame, open_envelope
 from catc.predict import NAMES, check
 from catc.replay import split_due
-from hil.capture import JsonLines, versions
+from hil.capture import schema
 from hil.config import address, web_address
 from hil.gcpolicy import GcPolicy
+from obu.capture import ObuCapture
 
 __all__ = ["DEFAULTS", "add_arguments", "run"]
 
@@ -139,71 +140,14 @@ class _RateLimitedLog:
         print(f"obu: {message}{extra}", file=sys.stderr, flush=True)
 
 
-class _Capture:
-    def __init__(self, directory: Path, args: argparse.Namespace) -> None:
-        self.dir = directory
-        directory.mkdir(parents=True, exist_ok=True)
-        self.rx = JsonLines(directory / "obu.rx.jsonl")
-        self.ticks = JsonLines(directory / "obu.ticks.jsonl")
-        self.tracks = JsonLines(directory / "obu.tracks.jsonl")
-        self.events = JsonLines(directory / "obu.events.jsonl")
-        self.mbr = JsonLines(directory / "obu.mbr.jsonl") if args.mbd else None
-        self.settings = {k: (list(v) if isinstance(v, tuple) else v)
-                         for k, v in vars(args).items() if k not in ("func", "parser")}
-        self.write_config(None)
-
-    def write_config(self, origin) -> None:
-        config = {"settings": self.settings,
-                  "versions": versions(),
-                  "origin": origin, "started_unix": time.time()}
-        tmp = self.dir / "obu.config.json.tmp"
-        tmp.write_text(json.dumps(config, indent=1, default=str))
-        tmp.replace(self.dir / "obu.config.json")
-
-    def write_counters(self, counters: dict) -> None:
-        tmp = self.dir / "obu.counters.json.tmp"
-        tmp.write_text(json.dumps(counters, indent=1, sort_keys=True))
-        tmp.replace(self.dir / "obu.counters.json")
-
-    def _files(self) -> list[JsonLines]:
-        return [f for f in (self.rx, self.ticks, self.tracks, self.events, self.mbr)
-                if f is not None]
-
-    def flush(self) -> None:
-        for f in self._files():
-            f.flush()
-
-    def close(self) -> None:
-        for f in self._files():
-            f.close()
-
-
-def _track_rows(snap: MapSnapshot, sec_mark: int) -> list[dict]:
-    z, pz = snap.zone, snap.predicted_zone
-    rows = []
-    for i in range(len(snap)):
-        rows.append({
-            "t": snap.t, "sec_mark": sec_mark, "id": f"{int(snap.ids[i]):08X}",
-            "x": round(float(snap.x[i]), 7), "y": round(float(snap.y[i]), 7),
-            "speed": round(float(snap.speed[i]), 3), "heading": round(float(snap.heading[i]), 3),
-            "source": snap.source[i], "age": round(float(snap.age[i]), 3),
-            "fresh": bool(snap.fresh[i]), "lane": int(snap.lane[i]),
-            "zone": [bool(z.ahead[i]), int(z.lateral[i]), int(z.direction[i])],
-            "s": round(float(z.s[i]), 3), "d": round(float(z.d[i]), 3),
-            "predicted_x": round(float(snap.pred_x[i]), 7),
-            "predicted_y": round(float(snap.pred_y[i]), 7),
-            "predicted_zone": [bool(pz.ahead[i]), int(pz.lateral[i]), int(pz.direction[i])]})
-    return rows
-
-
-def _claims(frame: bytes) -> dict:
-    """Who a rejected frame claims to be (id, msgCnt, secMark), for the capture; empty
-    when it does not decode."""
+def _claims(frame: bytes) -> tuple[int, int, int | None] | None:
+    """Who a rejected frame claims to be (TemporaryID, msgCnt, secMark), for the capture;
+    None when it does not decode."""
     try:
         bsm = decode_frame(frame)
     except DecodeError:
-        return {}
-    return {"id": f"{bsm.temp_id:08X}", "msgCnt": bsm.msg_cnt, "sec_mark": bsm.sec_mark}
+        return None
+    return (bsm.temp_id, bsm.msg_cnt, bsm.sec_mark)
 
 
 def _verifier(args: argparse.Namespace):
@@ -241,10 +185,9 @@ class Obu:
         self.counters: Counter[str] = Counter()
         self.log = _RateLimitedLog()
         self.step_ms: deque[float] = deque(maxlen=6000)  # the last 10 min of ticks
-        self.cap = _Capture(Path(args.capture), args) if args.capture else None
+        self.cap = ObuCapture(Path(args.capture), args) if args.capture else None
         self.warn_out = (open(args.warnings, "a", encoding="utf-8")  # noqa: SIM115
                          if args.warnings else sys.stdout)
-        self.origin_written = False
         self.verifier = _verifier(args)
         if self.verifier is not None:
             from catc.security import unix_to_time64
@@ -278,10 +221,8 @@ class Obu:
                 if verdict != "ok" and self.enforce:
                     self.log(verdict, f"dropped an RV frame that does not verify: {verdict}")
                     if self.cap is not None:
-                        self.cap.rx.write({"rx_unix": rx_unix, "channel": channel,
-                                           "octets": len(data), "status": "rejected",
-                                           "verdict": verdict, **_claims(frame),
-                                           "hex": data.hex()})
+                        self.cap.frame(rx_unix, channel, data, "rejected",
+                                       sender=_claims(frame), verdict=verdict)
                     return
             bsm = decode_frame(frame)
         except DecodeError as err:
@@ -289,9 +230,7 @@ class Obu:
             self.counters[f"decode_{err.reason}"] += 1
             self.log(err.reason, f"dropped an undecodable {channel} frame ({err})")
             if self.cap is not None:
-                self.cap.rx.write({"rx_unix": rx_unix, "channel": channel,
-                                   "octets": len(data), "status": err.reason,
-                                   "hex": data.hex()})
+                self.cap.frame(rx_unix, channel, data, err.reason)
             return
         if channel == "rv":
             if self.mbd is not None and self.misbehaves(bsm, rx_unix, data):
@@ -309,8 +248,8 @@ class Obu:
 
     def misbehaves(self, bsm, rx_unix: float, data: bytes) -> bool:
         """Run the misbehavior checks on one RV BSM; write a report per detection
-        (``obu.mbr.jsonl``); True (drop it, and its track) when its sender is in
-        quarantine.
+        (:meth:`obu.capture.ObuCapture.report`); True (drop it, and its track) when its
+        sender is in quarantine.
 
         The checks' clock is the host's (its secMark time at the newest host frame), like
         the CAM's: a replay faster than real time (``rve run --speed``) then looks to them
@@ -327,13 +266,8 @@ class Obu:
                                  host_heading=hb.heading if hb else None)
         for d in found:
             self.counters[f"mbd_{d.check}"] += 1
-            if self.cap is not None and self.cap.mbr is not None:
-                self.cap.mbr.write({
-                    "t_unix": rx_unix, "t": t, "reporter": f"{hb.temp_id:08X}" if hb else None,
-                    "suspect": f"{d.suspect:08X}", "check": d.check,
-                    "score": round(d.score, 4), "evidence": d.evidence,
-                    "other": None if d.other is None else f"{d.other:08X}",
-                    "msgCnt": bsm.msg_cnt, "sec_mark": bsm.sec_mark, "hex": data.hex()})
+            if self.cap is not None:
+                self.cap.report(rx_unix, t, hb.temp_id if hb else None, d, bsm, data)
         if not self.mbd.quarantined(bsm.temp_id, t):
             return False
         self.counters["mbd_quarantined"] += 1
@@ -347,10 +281,8 @@ class Obu:
         if self.cam.drop(bsm.temp_id):
             self.counters["mbd_tracks_dropped"] += 1
         if self.cap is not None:
-            self.cap.rx.write({"rx_unix": rx_unix, "channel": "rv", "octets": len(data),
-                               "status": "quarantined", "id": f"{bsm.temp_id:08X}",
-                               "msgCnt": bsm.msg_cnt, "sec_mark": bsm.sec_mark,
-                               "hex": data.hex()})
+            self.cap.frame(rx_unix, "rv", data, "quarantined",
+                           sender=(bsm.temp_id, bsm.msg_cnt, bsm.sec_mark))
         return True
 
     def verify(self, envelope, rx_unix: float) -> str:
@@ -403,49 +335,27 @@ class Obu:
                  "tick_p50": round(float(np.percentile(recent, 50)), 2),
                  "tick_p99": round(float(np.percentile(recent, 99)), 2),
                  "deadline_misses": c["deadline_misses"], "tentative": self.cam.tentative}
-        self.web.publish(tick_state(snap, host.sec_mark, _track_rows(snap, host.sec_mark),
-                                    panel))
+        self.web.publish(tick_state(snap, host.sec_mark,
+                                    schema.track_rows(snap, host.sec_mark), panel))
 
     def _outputs(self, snap: MapSnapshot, host, ms: float, decided: float,
                  received: list) -> None:
         for e in snap.events:
-            rec = {"app": e.app, "kind": e.kind, "rv": f"{int(e.rv_id):08X}",
-                   "t": e.t_start if e.kind == "start" else e.t_end, "t_start": e.t_start}
+            rec = schema.event(e)
             self.warn_out.write(json.dumps(rec) + "\n")
             print(f"obu: {e.app.upper()} {e.kind} RV {rec['rv']} at t={rec['t']:.1f} s",
                   file=sys.stderr, flush=True)
             self.counters[f"events_{e.app}"] += 1
             if self.cap is not None:
-                self.cap.events.write(rec)
+                self.cap.event(rec)
         self.warn_out.flush()
         self.counters["warning_ticks"] += bool(snap.warnings)
         if self.cap is None:
             return
-        if not self.origin_written and self.cam.frame is not None:
+        if not self.cap.origin_written and self.cam.frame is not None:
             f = self.cam.frame
-            self.cap.write_config([f.lat0, f.lon0, f.h0])
-            self.origin_written = True
-        cap = self.cap
-        for m, rx_unix, data, verdict in received:
-            record = {"rx_unix": rx_unix, "channel": "rv", "id": f"{m.temp_id:08X}",
-                      "msgCnt": m.msg_cnt, "sec_mark": m.sec_mark, "status": "ok",
-                      "tick": snap.t, "decided_unix": decided, "octets": len(data),
-                      "hex": data.hex()}
-            if verdict is not None:
-                record["verdict"] = verdict
-            cap.rx.write(record)
-        cap.ticks.write({
-            "t": snap.t, "sec_mark": host.sec_mark, "host": [round(snap.host.x, 4),
-                                                            round(snap.host.y, 4)],
-            "host_speed": round(snap.host.speed, 3),
-            "host_heading": round(snap.host.heading, 3), "tracked": len(snap),
-            "step_ms": round(ms, 3), "decided_unix": decided,
-            "warnings": [[w.app, f"{w.rv_id:08X}", round(w.range_m, 3),
-                          round(w.threshold_m, 3) if w.threshold_m == w.threshold_m
-                          else None, w.side] for w in snap.warnings]})
-        for row in _track_rows(snap, host.sec_mark):
-            cap.tracks.write(row)
-        cap.flush()
+            self.cap.write_origin([f.lat0, f.lon0, f.h0])
+        self.cap.tick(snap, host.sec_mark, ms, decided, received)
 
     def status(self, frames_per_s: float) -> str:
         p99 = float(np.percentile(self.step_ms, 99)) if self.step_ms else 0.0
@@ -474,13 +384,8 @@ class Obu:
             # received, never stepped (no host frame came after them): recorded all the
             # same, so that the capture has every frame the OBU received
             for m in self.pending:
-                rx_unix, data, verdict = self.pending_rx.pop(id(m), (None, b"", None))
-                record = {"rx_unix": rx_unix, "channel": "rv", "id": f"{m.temp_id:08X}",
-                          "msgCnt": m.msg_cnt, "sec_mark": m.sec_mark, "status": "unticked",
-                          "octets": len(data), "hex": data.hex()}
-                if verdict is not None:
-                    record["verdict"] = verdict
-                self.cap.rx.write(record)
+                received = (m, *self.pending_rx.pop(id(m), (None, b"", None)))
+                self.cap.message(received, "unticked")
             self.pending = []
             self.cap.close()
         if self.warn_out is not sys.stdout:

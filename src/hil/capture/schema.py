@@ -41,8 +41,8 @@ from catc.bsm import msg_cnt, sec_mark
 __all__ = [
     "OBU_CONFIG", "OBU_COUNTERS", "OBU_EVENTS", "OBU_MBR", "OBU_RX", "OBU_TICKS",
     "OBU_TRACKS", "RVE_CAN_STEM", "RVE_CONFIG", "RVE_PCAPNG", "RVE_SCHEDULE", "RVE_TRUTH",
-    "event", "hex_id", "message_key", "received", "received_key", "report", "scheduled",
-    "scheduled_key", "sent", "settings", "tick", "track_rows", "truth",
+    "event", "hex_id", "message_key", "obu_config", "received", "received_key", "report",
+    "scheduled", "scheduled_key", "sent", "settings", "tick", "track_rows", "truth",
 ]
 
 RVE_CONFIG = "rve.config.json"
@@ -126,6 +126,16 @@ def sent(record: dict[str, Any], sent_unix: float, late_s: float, octets: int
 
 
 # --- the OBU's records ------------------------------------------------------------------
+
+def obu_config(settings: dict[str, Any], versions: dict[str, str],
+               origin: list[float] | None, started_unix: float) -> dict[str, Any]:
+    """The OBU's run (``obu.config.json``): its :func:`settings`, the software's versions
+    (:func:`hil.capture.writers.versions`), the ENU origin ``[lat, lon, h]`` of its map
+    (None until its first tick; the file is rewritten once it is known) and the wall-clock
+    time the file was written."""
+    return {"settings": settings, "versions": versions, "origin": origin,
+            "started_unix": started_unix}
+
 
 def received(rx_unix: float, channel: str, data: bytes, status: str, *,
              sender: tuple[int, int, int | None] | None = None, verdict: str | None = None,

@@ -335,8 +335,7 @@ class Obu:
                  "tick_p50": round(float(np.percentile(recent, 50)), 2),
                  "tick_p99": round(float(np.percentile(recent, 99)), 2),
                  "deadline_misses": c["deadline_misses"], "tentative": self.cam.tentative}
-        self.web.publish(tick_state(snap, host.sec_mark,
-                                    schema.track_rows(snap, host.sec_mark), panel))
+        self.web.publish(tick_state(snap, host.sec_mark, panel))
 
     def _outputs(self, snap: MapSnapshot, host, ms: float, decided: float,
                  received: list) -> None:

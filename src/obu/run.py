@@ -58,6 +58,7 @@ from pathlib import Path
 import numpy as np
 
 from catc.apps import SafetyApps
+from catc.bsm import BSM
 from catc.cam import CamConfig, ContextAwareMap, MapSnapshot, SecMarkClock
 from catc.errors import DecodeError
 from catc.j2735 import decode_frame, open_envelope
@@ -67,12 +68,9 @@ from hil.capture import schema
 from hil.gcpolicy import GcPolicy
 from obu.capture import ObuCapture
 from obu.options import DEFAULTS, add_arguments
+from obu.tick import STEP, TAKE, TICK_S, WAIT, TickRule
 
 __all__ = ["DEFAULTS", "add_arguments", "run"]
-
-#: The host's BSM period: a step slower than this misses its deadline.
-TICK_S = 0.1
-
 
 class _RateLimitedLog:
     """At most one stderr line per key per second (a flood of garbage must not flood)."""
@@ -151,19 +149,19 @@ class Obu:
             self.mbd = MisbehaviorDetector()
         self.last_host = None  # (BSM, rx unix) of the newest host frame
         self.enforce = args.verify == "enforce"
-        self.host = None  # the host frame that triggers the next tick
+        self.rule = TickRule(args.collect_ms)
         self.last_frame = time.monotonic()
-        self.last_rv_frame = 0.0
         self.web = None  # the live view's hub (obu.web.Hub) when --web is on
         self.frames_per_s = 0.0
 
-    def frame(self, channel: str, data: bytes, rx_unix: float) -> None:
-        """One received frame: decode it; an HV frame also steps the CAM."""
+    def frame(self, channel: str, data: bytes, rx_unix: float) -> BSM | None:
+        """One received frame: decode it; the host's BSM when it is a host frame that
+        decodes (it triggers a tick), else None."""
         self.counters["frames"] += 1
         self.counters[f"frames_{channel}"] += 1
         self.last_frame = time.monotonic()
         if channel == "rv":  # any datagram, decodable or not: the channel is not quiet
-            self.last_rv_frame = self.last_frame
+            self.rule.rv_frame(self.last_frame)
         verdict = None
         try:
             frame, envelope = open_envelope(data)
@@ -174,7 +172,7 @@ class Obu:
                     if self.cap is not None:
                         self.cap.frame(rx_unix, channel, data, "rejected",
                                        sender=_claims(frame), verdict=verdict)
-                    return
+                    return None
             bsm = decode_frame(frame)
         except DecodeError as err:
             self.counters["decode_errors"] += 1
@@ -182,16 +180,16 @@ class Obu:
             self.log(err.reason, f"dropped an undecodable {channel} frame ({err})")
             if self.cap is not None:
                 self.cap.frame(rx_unix, channel, data, err.reason)
-            return
+            return None
         if channel == "rv":
             if self.mbd is not None and self.misbehaves(bsm, rx_unix, data):
-                return
+                return None
             self.pending.append(bsm)
             self.pending_rx[id(bsm)] = (rx_unix, data, verdict)
-            return
-        self.host = bsm
+            return None
         if bsm.sec_mark is not None:  # the host's clock (data time), for the MBD
             self.last_host = (bsm, rx_unix, self.clock(bsm.sec_mark))
+        return bsm
 
     #: A host frame older than this (s) is no position for the range and appearance
     #: checks (catc.mbd: a stale host position gives false sudden appearances).
@@ -342,12 +340,6 @@ class Obu:
             self.warn_out.close()
 
 
-#: The longest a tick waits (s) for the frames that reached the receiver before its host
-#: frame, when that is longer than --collect-ms: half the 100 ms tick period, so a flood
-#: delays a tick but never stops it.
-DRAIN_S = 0.05
-
-
 async def _open_receiver(args: argparse.Namespace):
     from hil.transport import open_receiver
 
@@ -387,7 +379,6 @@ async def serve(args: argparse.Namespace) -> dict:
     obu.gc = GcPolicy()  # start-up done: freeze it; collections after ticks only
     started = time.monotonic()
     last_status, frames_at_status = started, 0
-    collect_s = max(0.0, args.collect_ms) / 1000.0
     try:
         while not stop.is_set():
             if args.duration is not None and time.monotonic() - started > args.duration:
@@ -400,28 +391,21 @@ async def serve(args: argparse.Namespace) -> dict:
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(arrived.wait(), 0.2)
             while inbox:
-                channel, data, rx_unix = inbox.popleft()
-                obu.frame(channel, data, rx_unix)
-                if channel != "host" or obu.host is None:
+                host = obu.frame(*inbox.popleft())
+                if host is None:
                     continue
-                host, obu.host = obu.host, None
-                # Take every frame that reached the receiver before this host frame (still
-                # in its queue or socket buffer), then let the RV channel go quiet (up to
-                # --collect-ms), so frames sent just before the host's are in this tick;
-                # stop at the next host frame.
-                begun = time.monotonic()
-                deadline, limit = begun + collect_s, begun + max(collect_s, DRAIN_S)
-                while True:
-                    await asyncio.sleep(0)
-                    while inbox and inbox[0][0] == "rv":
+                # the tick rule (obu.tick): take the frames that reached the receiver
+                # before this host frame, let the RV channel go quiet, then step
+                obu.rule.host_frame(time.monotonic())
+                action = WAIT
+                while action is not STEP:
+                    if action is TAKE:
                         obu.frame(*inbox.popleft())
-                    now = time.monotonic()
-                    if (inbox and inbox[0][0] == "host") or now >= limit:
-                        break
-                    if rx.waiting():
-                        continue
-                    if now >= deadline or now - obu.last_rv_frame > 0.001:
-                        break
+                    else:
+                        await asyncio.sleep(0)
+                    head = inbox[0][0] if inbox else None
+                    action = obu.rule.next(time.monotonic(), head,
+                                           head is None and rx.waiting())
                 obu.tick(host)
                 obu.gc.after_tick()
                 break

@@ -29,6 +29,7 @@ from catc.replay import plan, simulate
 from hil.datasets import load_table
 from hil.transport.udp import free_ports, wait_bound
 from obu import run as obu_run
+from obu.daemon import Obu
 from obu.tick import DRAIN_S, QUIET_S, STEP, TAKE, WAIT, TickRule
 from rve import run as rve_run
 from tests.test_transport import netns  # noqa: F401  (fixture)
@@ -182,14 +183,14 @@ def test_a_tick_takes_every_frame_received_before_its_host_frame(tmp_path, monke
     signatures), three times the collect rule's 1 ms quiet gap.  The event loop reads one
     datagram per socket per pass, so the host frame is read while most RV frames still
     wait in the socket buffer; the old rule stepped without them."""
-    handle = obu_run.Obu.frame
+    handle = Obu.frame
 
     def slow_frame(self, channel, data, rx_unix):
         if channel == "rv":
             time.sleep(0.003)
         return handle(self, channel, data, rx_unix)
 
-    monkeypatch.setattr(obu_run.Obu, "frame", slow_frame)
+    monkeypatch.setattr(Obu, "frame", slow_frame)
     ports = free_ports()
     ns = dict(obu_run.DEFAULTS, listen=("127.0.0.1", ports[0]),
               host_listen=("127.0.0.1", ports[1]), predictor="ca", capture=str(tmp_path),

@@ -29,6 +29,8 @@ from catc.replay import plan, simulate
 from hil.datasets import load_table
 from hil.transport.udp import free_ports, wait_bound
 from obu import run as obu_run
+from obu.daemon import Obu
+from obu.tick import DRAIN_S, QUIET_S, STEP, TAKE, WAIT, TickRule
 from rve import run as rve_run
 from tests.test_transport import netns  # noqa: F401  (fixture)
 
@@ -181,14 +183,14 @@ def test_a_tick_takes_every_frame_received_before_its_host_frame(tmp_path, monke
     signatures), three times the collect rule's 1 ms quiet gap.  The event loop reads one
     datagram per socket per pass, so the host frame is read while most RV frames still
     wait in the socket buffer; the old rule stepped without them."""
-    handle = obu_run.Obu.frame
+    handle = Obu.frame
 
     def slow_frame(self, channel, data, rx_unix):
         if channel == "rv":
             time.sleep(0.003)
-        handle(self, channel, data, rx_unix)
+        return handle(self, channel, data, rx_unix)
 
-    monkeypatch.setattr(obu_run.Obu, "frame", slow_frame)
+    monkeypatch.setattr(Obu, "frame", slow_frame)
     ports = free_ports()
     ns = dict(obu_run.DEFAULTS, listen=("127.0.0.1", ports[0]),
               host_listen=("127.0.0.1", ports[1]), predictor="ca", capture=str(tmp_path),
@@ -213,6 +215,82 @@ def test_a_tick_takes_every_frame_received_before_its_host_frame(tmp_path, monke
     assert counters["ticks"] == 1 and counters["frames_rv"] == 10
     rx = [json.loads(line) for line in (tmp_path / "obu.rx.jsonl").open()]
     assert [r["status"] for r in rx if r["channel"] == "rv"] == ["ok"] * 10
+
+
+class _Loop:
+    """A fake event loop for the tick rule: a fake clock, the OBU's queue, and a socket
+    buffer of which each pass (a WAIT) reads one datagram."""
+
+    def __init__(self, rule: TickRule, socket_buffer: list[str], handle_s: float) -> None:
+        self.rule, self.buffer, self.handle_s = rule, list(socket_buffer), handle_s
+        self.now, self.queue, self.taken = 0.0, [], []
+
+    def collect(self) -> list[str]:
+        """Collect a tick's frames from a host frame at the current time; what it took."""
+        self.rule.host_frame(self.now)
+        action = WAIT
+        while action is not STEP:
+            if action is TAKE:
+                self.now += self.handle_s  # handling one RV frame takes this long
+                self.rule.rv_frame(self.now)
+                self.taken.append(self.queue.pop(0))
+            else:
+                self.now += 1e-5
+                if self.buffer:
+                    self.queue.append(self.buffer.pop(0))
+            head = "host" if self.queue and self.queue[0] == "host" else \
+                ("rv" if self.queue else None)
+            action = self.rule.next(self.now, head, head is None and bool(self.buffer))
+        return self.taken
+
+
+def test_the_tick_rule_takes_every_frame_that_reached_the_receiver_first():
+    """The socket-level test below without sockets: 10 RV frames in the socket buffer
+    when the host frame is read, 3 ms each to handle (three times the quiet gap): all
+    are taken before the step; the next host frame stops the collection."""
+    loop = _Loop(TickRule(collect_ms=5.0), ["rv"] * 10 + ["host", "rv"], handle_s=0.003)
+    assert loop.collect() == ["rv"] * 10
+    assert loop.queue == ["host"] and loop.buffer == ["rv"]
+    assert loop.now < DRAIN_S
+
+
+def test_the_tick_rule_drains_for_at_most_drain_s():
+    """A flood delays a tick by DRAIN_S at most, never stops it."""
+    loop = _Loop(TickRule(collect_ms=5.0), ["rv"] * 10_000, handle_s=0.001)
+    taken = loop.collect()
+    assert DRAIN_S <= loop.now < DRAIN_S + 0.002 and 40 < len(taken) < 60
+
+
+def test_the_tick_rule_waits_for_the_rv_channel_to_go_quiet():
+    rule = TickRule(collect_ms=5.0)
+    rule.rv_frame(0.9995)
+    rule.host_frame(1.0)
+    assert rule.next(1.0, None, False) is WAIT  # an RV frame 0.5 ms ago: not quiet
+    assert rule.next(1.0004, None, False) is WAIT  # 0.9 ms since: not yet
+    rule.rv_frame(1.001)
+    assert rule.next(1.0015, "rv", False) is TAKE  # a frame in the queue: take it
+    assert rule.next(1.0015, None, True) is WAIT  # one in the socket buffer: read it
+    assert rule.next(1.0015 + QUIET_S + 1e-6, None, False) is STEP  # quiet
+    with pytest.raises(RuntimeError):  # the step ends the collection
+        rule.next(1.1, None, False)
+
+
+def test_the_tick_rule_stops_at_collect_ms_and_at_the_next_host_frame():
+    rule = TickRule(collect_ms=5.0)
+    rule.host_frame(2.0)
+    for k in range(5):  # an RV frame every 0.9 ms: never quiet
+        rule.rv_frame(2.0 + 0.0009 * k)
+        assert rule.next(2.0 + 0.0009 * k, None, False) is WAIT
+    assert rule.next(2.005, None, False) is STEP  # --collect-ms is over
+    rule.host_frame(2.1)
+    assert rule.next(2.1, "host", True) is STEP  # the next host frame, whatever waits
+    rule.host_frame(2.2)
+    assert rule.next(2.2 + DRAIN_S - 1e-6, None, True) is WAIT  # still draining
+    assert rule.next(2.2 + DRAIN_S, None, True) is STEP
+    slow = TickRule(collect_ms=80.0)  # --collect-ms longer than DRAIN_S: the limit
+    slow.host_frame(0.0)
+    assert slow.next(0.079, None, True) is WAIT and slow.next(0.08, None, True) is STEP
+    assert TickRule(collect_ms=-3.0).collect_s == 0.0
 
 
 def test_can_end_to_end_on_the_virtual_bus(tmp_path):

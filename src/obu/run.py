@@ -52,450 +52,20 @@ import json
 import signal
 import sys
 import time
-from collections import Counter, deque
-from pathlib import Path
+from collections import deque
 
-import numpy as np
-
-from catc.apps import SafetyApps
-from catc.cam import CamConfig, ContextAwareMap, MapSnapshot, SecMarkClock
-from catc.errors import DecodeError
-from catc.j2735 import decode_frame, open_envelope
-from catc.predict import NAMES, check
-from catc.replay import split_due
-from hil.capture import JsonLines, versions
-from hil.config import address, web_address
+from catc.predict import check
 from hil.gcpolicy import GcPolicy
+from hil.transport import Receiver, TransportError, open_receiver
+from obu.daemon import Obu
+from obu.frames import verifier
+from obu.options import DEFAULTS, add_arguments
+from obu.tick import STEP, TAKE, WAIT
 
-__all__ = ["DEFAULTS", "add_arguments", "run"]
-
-DEFAULTS = {
-    "transport": "udp", "listen": ("127.0.0.1", 4500), "host_listen": ("127.0.0.1", 4501),
-    "predictor": "hgp", "capture": None, "duration": None, "idle_exit": None,
-    "warnings": None, "collect_ms": 5.0, "can_interface": "virtual", "can_channel": None,
-    "can_fd": False, "progress": True, "max_tracks": 1000, "verify": "off", "trust": None,
-    "mbd": False, "web": None,
-}
-
-#: The host's BSM period: a step slower than this misses its deadline.
-TICK_S = 0.1
+__all__ = ["DEFAULTS", "add_arguments", "fix_mmap_threshold", "run", "serve"]
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    """The flags of ``obu run`` (DESIGN.md's contract); unset ones come from --config."""
-    p.add_argument("--config", metavar="FILE.toml", help="settings file; flags override it")
-    p.add_argument("--transport", choices=("udp", "can"), help="udp (default) or can")
-    p.add_argument("--listen", type=address, help="UDP HOST:PORT of the RV frames "
-                   "(default 127.0.0.1:4500)")
-    p.add_argument("--host-listen", type=address, help="UDP HOST:PORT of the host "
-                   "vehicle's frames (default 127.0.0.1:4501)")
-    p.add_argument("--predictor", choices=NAMES, help="tracking predictor (default hgp)")
-    p.add_argument("--capture", metavar="DIR", help="capture directory (see --help)")
-    p.add_argument("--duration", type=float, metavar="S", help="stop after S s (wall clock)")
-    p.add_argument("--idle-exit", type=float, metavar="S",
-                   help="stop once no frame has arrived for S s (after the first)")
-    p.add_argument("--warnings", metavar="FILE", help="warning events as JSON lines here "
-                   "instead of stdout")
-    p.add_argument("--collect-ms", type=float, help="longest wait for the RV channel to go "
-                   "quiet before a step, after the frames already received are taken "
-                   "(default 5)")
-    p.add_argument("--max-tracks", type=int, help="most RVs tracked at once (default 1000)")
-    p.add_argument("--can-interface", choices=("socketcan", "virtual", "udp_multicast"),
-                   help="python-can interface for --transport can (default virtual)")
-    p.add_argument("--can-channel", metavar="NAME", help="CAN channel, e.g. vcan0")
-    p.add_argument("--can-fd", action="store_true", default=None, help="CAN FD frames")
-    p.add_argument("--verify", choices=("off", "log", "enforce"),
-                   help="IEEE 1609.2 verification of the RV frames: off (default), log "
-                        "(verify and record the verdict, track every frame) or enforce "
-                        "(drop what does not verify); needs --trust")
-    p.add_argument("--trust", metavar="PATH",
-                   help="trust store for --verify: a PKI directory (rve pki init: its root "
-                        "is trusted, its AA known) or a root certificate .oer file")
-    p.add_argument("--web", type=web_address, metavar="[HOST:]PORT",
-                   help="serve the live view (a web page of the map, /api/state) here; "
-                        "127.0.0.1 unless a host is named; off by default")
-    p.add_argument("--mbd", action="store_true", default=None,
-                   help="misbehavior detection (catc.mbd: F2MD's plausibility checks) on "
-                        "every RV frame that passes verification: detections go to "
-                        "obu.mbr.jsonl and a quarantined sender is not tracked")
-    p.add_argument("--no-progress", dest="progress", action="store_false", default=None,
-                   help="no status line on stderr")
-
-
-class _RateLimitedLog:
-    """At most one stderr line per key per second (a flood of garbage must not flood)."""
-
-    def __init__(self) -> None:
-        self.last: dict[str, float] = {}
-        self.suppressed: Counter[str] = Counter()
-
-    def __call__(self, key: str, message: str) -> None:
-        now = time.monotonic()
-        if now - self.last.get(key, -1e9) < 1.0:
-            self.suppressed[key] += 1
-            return
-        extra = f" (+{self.suppressed.pop(key)} more)" if self.suppressed.get(key) else ""
-        self.last[key] = now
-        print(f"obu: {message}{extra}", file=sys.stderr, flush=True)
-
-
-class _Capture:
-    def __init__(self, directory: Path, args: argparse.Namespace) -> None:
-        self.dir = directory
-        directory.mkdir(parents=True, exist_ok=True)
-        self.rx = JsonLines(directory / "obu.rx.jsonl")
-        self.ticks = JsonLines(directory / "obu.ticks.jsonl")
-        self.tracks = JsonLines(directory / "obu.tracks.jsonl")
-        self.events = JsonLines(directory / "obu.events.jsonl")
-        self.mbr = JsonLines(directory / "obu.mbr.jsonl") if args.mbd else None
-        self.settings = {k: (list(v) if isinstance(v, tuple) else v)
-                         for k, v in vars(args).items() if k not in ("func", "parser")}
-        self.write_config(None)
-
-    def write_config(self, origin) -> None:
-        config = {"settings": self.settings,
-                  "versions": versions(),
-                  "origin": origin, "started_unix": time.time()}
-        tmp = self.dir / "obu.config.json.tmp"
-        tmp.write_text(json.dumps(config, indent=1, default=str))
-        tmp.replace(self.dir / "obu.config.json")
-
-    def write_counters(self, counters: dict) -> None:
-        tmp = self.dir / "obu.counters.json.tmp"
-        tmp.write_text(json.dumps(counters, indent=1, sort_keys=True))
-        tmp.replace(self.dir / "obu.counters.json")
-
-    def _files(self) -> list[JsonLines]:
-        return [f for f in (self.rx, self.ticks, self.tracks, self.events, self.mbr)
-                if f is not None]
-
-    def flush(self) -> None:
-        for f in self._files():
-            f.flush()
-
-    def close(self) -> None:
-        for f in self._files():
-            f.close()
-
-
-def _track_rows(snap: MapSnapshot, sec_mark: int) -> list[dict]:
-    z, pz = snap.zone, snap.predicted_zone
-    rows = []
-    for i in range(len(snap)):
-        rows.append({
-            "t": snap.t, "sec_mark": sec_mark, "id": f"{int(snap.ids[i]):08X}",
-            "x": round(float(snap.x[i]), 7), "y": round(float(snap.y[i]), 7),
-            "speed": round(float(snap.speed[i]), 3), "heading": round(float(snap.heading[i]), 3),
-            "source": snap.source[i], "age": round(float(snap.age[i]), 3),
-            "fresh": bool(snap.fresh[i]), "lane": int(snap.lane[i]),
-            "zone": [bool(z.ahead[i]), int(z.lateral[i]), int(z.direction[i])],
-            "s": round(float(z.s[i]), 3), "d": round(float(z.d[i]), 3),
-            "predicted_x": round(float(snap.pred_x[i]), 7),
-            "predicted_y": round(float(snap.pred_y[i]), 7),
-            "predicted_zone": [bool(pz.ahead[i]), int(pz.lateral[i]), int(pz.direction[i])]})
-    return rows
-
-
-def _claims(frame: bytes) -> dict:
-    """Who a rejected frame claims to be (id, msgCnt, secMark), for the capture; empty
-    when it does not decode."""
-    try:
-        bsm = decode_frame(frame)
-    except DecodeError:
-        return {}
-    return {"id": f"{bsm.temp_id:08X}", "msgCnt": bsm.msg_cnt, "sec_mark": bsm.sec_mark}
-
-
-def _verifier(args: argparse.Namespace):
-    """The IEEE 1609.2 verifier of ``--verify log|enforce`` (None when off); ValueError
-    (one line) for a missing or unusable trust store."""
-    if args.verify in (None, "off"):
-        return None
-    if not args.trust:
-        raise ValueError(f"--verify {args.verify} needs --trust PKI_DIR or ROOT.oer")
-    from catc.security import Verifier
-    from hil.pki import trust_store
-
-    roots, cas = trust_store(args.trust)
-    try:
-        return Verifier(roots, certificates=cas)
-    except ValueError as err:
-        raise ValueError(f"--trust {args.trust}: {err}") from None
-
-
-class Obu:
-    """The daemon's state: the CAM, the clock, pending messages and counters."""
-
-    def __init__(self, args: argparse.Namespace) -> None:
-        self.args = args
-        config = CamConfig(predictor=args.predictor, max_tracks=args.max_tracks)
-        self.cam = ContextAwareMap(config, SafetyApps())
-        if args.predictor == "hgp":  # its compiled kernels, before the first tick
-            from catc.predict.hgp import warm_up
-
-            warm_up()
-        self.clock = SecMarkClock()
-        self.gc = None  # the GcPolicy, once serve() has started everything
-        self.pending: list = []  # decoded RV BSMs waiting for their tick
-        self.pending_rx: dict[int, tuple[float, bytes]] = {}  # id(bsm) -> (rx unix, octets)
-        self.counters: Counter[str] = Counter()
-        self.log = _RateLimitedLog()
-        self.step_ms: deque[float] = deque(maxlen=6000)  # the last 10 min of ticks
-        self.cap = _Capture(Path(args.capture), args) if args.capture else None
-        self.warn_out = (open(args.warnings, "a", encoding="utf-8")  # noqa: SIM115
-                         if args.warnings else sys.stdout)
-        self.origin_written = False
-        self.verifier = _verifier(args)
-        if self.verifier is not None:
-            from catc.security import unix_to_time64
-
-            self.to_time64 = unix_to_time64
-        self.mbd = None
-        if args.mbd:
-            from catc.mbd import MisbehaviorDetector
-
-            self.mbd = MisbehaviorDetector()
-        self.last_host = None  # (BSM, rx unix) of the newest host frame
-        self.enforce = args.verify == "enforce"
-        self.host = None  # the host frame that triggers the next tick
-        self.last_frame = time.monotonic()
-        self.last_rv_frame = 0.0
-        self.web = None  # the live view's hub (obu.web.Hub) when --web is on
-        self.frames_per_s = 0.0
-
-    def frame(self, channel: str, data: bytes, rx_unix: float) -> None:
-        """One received frame: decode it; an HV frame also steps the CAM."""
-        self.counters["frames"] += 1
-        self.counters[f"frames_{channel}"] += 1
-        self.last_frame = time.monotonic()
-        if channel == "rv":  # any datagram, decodable or not: the channel is not quiet
-            self.last_rv_frame = self.last_frame
-        verdict = None
-        try:
-            frame, envelope = open_envelope(data)
-            if channel == "rv" and self.verifier is not None:
-                verdict = self.verify(envelope, rx_unix)
-                if verdict != "ok" and self.enforce:
-                    self.log(verdict, f"dropped an RV frame that does not verify: {verdict}")
-                    if self.cap is not None:
-                        self.cap.rx.write({"rx_unix": rx_unix, "channel": channel,
-                                           "octets": len(data), "status": "rejected",
-                                           "verdict": verdict, **_claims(frame),
-                                           "hex": data.hex()})
-                    return
-            bsm = decode_frame(frame)
-        except DecodeError as err:
-            self.counters["decode_errors"] += 1
-            self.counters[f"decode_{err.reason}"] += 1
-            self.log(err.reason, f"dropped an undecodable {channel} frame ({err})")
-            if self.cap is not None:
-                self.cap.rx.write({"rx_unix": rx_unix, "channel": channel,
-                                   "octets": len(data), "status": err.reason,
-                                   "hex": data.hex()})
-            return
-        if channel == "rv":
-            if self.mbd is not None and self.misbehaves(bsm, rx_unix, data):
-                return
-            self.pending.append(bsm)
-            self.pending_rx[id(bsm)] = (rx_unix, data, verdict)
-            return
-        self.host = bsm
-        if bsm.sec_mark is not None:  # the host's clock (data time), for the MBD
-            self.last_host = (bsm, rx_unix, self.clock(bsm.sec_mark))
-
-    #: A host frame older than this (s) is no position for the range and appearance
-    #: checks (catc.mbd: a stale host position gives false sudden appearances).
-    HOST_FRESH_S = 0.5
-
-    def misbehaves(self, bsm, rx_unix: float, data: bytes) -> bool:
-        """Run the misbehavior checks on one RV BSM; write a report per detection
-        (``obu.mbr.jsonl``); True (drop it, and its track) when its sender is in
-        quarantine.
-
-        The checks' clock is the host's (its secMark time at the newest host frame), like
-        the CAM's: a replay faster than real time (``rve run --speed``) then looks to them
-        as it would on the road, where the receive clock and the senders' secMarks
-        advance together.  Before the first host frame nothing is checked."""
-        host = self.last_host
-        if host is None:
-            self.counters["mbd_no_host_yet"] += 1
-            return False
-        t = host[2]
-        fresh = rx_unix - host[1] <= self.HOST_FRESH_S
-        hb = host[0] if fresh else None
-        found = self.mbd.observe(bsm, t, hb.lat if hb else None, hb.lon if hb else None,
-                                 host_heading=hb.heading if hb else None)
-        for d in found:
-            self.counters[f"mbd_{d.check}"] += 1
-            if self.cap is not None and self.cap.mbr is not None:
-                self.cap.mbr.write({
-                    "t_unix": rx_unix, "t": t, "reporter": f"{hb.temp_id:08X}" if hb else None,
-                    "suspect": f"{d.suspect:08X}", "check": d.check,
-                    "score": round(d.score, 4), "evidence": d.evidence,
-                    "other": None if d.other is None else f"{d.other:08X}",
-                    "msgCnt": bsm.msg_cnt, "sec_mark": bsm.sec_mark, "hex": data.hex()})
-        if not self.mbd.quarantined(bsm.temp_id, t):
-            return False
-        self.counters["mbd_quarantined"] += 1
-        keep = []
-        for m in self.pending:
-            if m.temp_id == bsm.temp_id:
-                self.pending_rx.pop(id(m), None)
-            else:
-                keep.append(m)
-        self.pending = keep
-        if self.cam.drop(bsm.temp_id):
-            self.counters["mbd_tracks_dropped"] += 1
-        if self.cap is not None:
-            self.cap.rx.write({"rx_unix": rx_unix, "channel": "rv", "octets": len(data),
-                               "status": "quarantined", "id": f"{bsm.temp_id:08X}",
-                               "msgCnt": bsm.msg_cnt, "sec_mark": bsm.sec_mark,
-                               "hex": data.hex()})
-        return True
-
-    def verify(self, envelope, rx_unix: float) -> str:
-        """The 1609.2 verdict of one RV frame (``ok`` or a reason), counted."""
-        if envelope is None:
-            reason = "unsigned"
-        else:
-            reason = self.verifier.verify(envelope, self.to_time64(rx_unix)).reason
-        self.counters[f"verify_{reason}"] += 1
-        if reason != "ok":
-            self.counters["verify_rejected" if self.enforce else "verify_failed"] += 1
-        return reason
-
-    def tick(self, host) -> MapSnapshot | None:
-        """Step the CAM at host frame ``host`` (see the module docstring)."""
-        if host.sec_mark is None or host.lat is None or host.lon is None:
-            self.counters["host_incomplete"] += 1
-            self.log("host", "a host frame without time or position: no tick")
-            return None
-        now = self.clock(host.sec_mark)
-        due, self.pending = split_due(now, self.pending, self.cam.config.max_future_s)
-        t0 = time.perf_counter()
-        try:
-            snap = self.cam.step(now, host, due)
-        except ValueError as err:  # time going backwards on the host channel
-            self.counters["host_rejected"] += 1
-            self.log("host", f"host frame rejected: {err}")
-            return None
-        ms = (time.perf_counter() - t0) * 1000.0
-        self.step_ms.append(ms)
-        self.counters["ticks"] += 1
-        if ms > TICK_S * 1000.0:
-            self.counters["deadline_misses"] += 1
-        decided = time.time()
-        received = [(m, *self.pending_rx.pop(id(m), (None, b"", None))) for m in due]
-        self._outputs(snap, host, ms, decided, received)
-        if self.web is not None and (self.web.clients or self.web.polled):
-            self._publish(snap, host)
-        return snap
-
-    def _publish(self, snap: MapSnapshot, host) -> None:
-        """The tick's state to the live view (after the step: not in its time)."""
-        from obu.web import tick_state
-
-        c = self.counters
-        ms = self.step_ms
-        recent = list(ms)[-600:]  # the last minute of ticks
-        panel = {"frames_per_s": round(self.frames_per_s), "decode_errors":
-                 c["decode_errors"], "rejected": c["verify_rejected"] + c["mbd_quarantined"],
-                 "tick_p50": round(float(np.percentile(recent, 50)), 2),
-                 "tick_p99": round(float(np.percentile(recent, 99)), 2),
-                 "deadline_misses": c["deadline_misses"], "tentative": self.cam.tentative}
-        self.web.publish(tick_state(snap, host.sec_mark, _track_rows(snap, host.sec_mark),
-                                    panel))
-
-    def _outputs(self, snap: MapSnapshot, host, ms: float, decided: float,
-                 received: list) -> None:
-        for e in snap.events:
-            rec = {"app": e.app, "kind": e.kind, "rv": f"{int(e.rv_id):08X}",
-                   "t": e.t_start if e.kind == "start" else e.t_end, "t_start": e.t_start}
-            self.warn_out.write(json.dumps(rec) + "\n")
-            print(f"obu: {e.app.upper()} {e.kind} RV {rec['rv']} at t={rec['t']:.1f} s",
-                  file=sys.stderr, flush=True)
-            self.counters[f"events_{e.app}"] += 1
-            if self.cap is not None:
-                self.cap.events.write(rec)
-        self.warn_out.flush()
-        self.counters["warning_ticks"] += bool(snap.warnings)
-        if self.cap is None:
-            return
-        if not self.origin_written and self.cam.frame is not None:
-            f = self.cam.frame
-            self.cap.write_config([f.lat0, f.lon0, f.h0])
-            self.origin_written = True
-        cap = self.cap
-        for m, rx_unix, data, verdict in received:
-            record = {"rx_unix": rx_unix, "channel": "rv", "id": f"{m.temp_id:08X}",
-                      "msgCnt": m.msg_cnt, "sec_mark": m.sec_mark, "status": "ok",
-                      "tick": snap.t, "decided_unix": decided, "octets": len(data),
-                      "hex": data.hex()}
-            if verdict is not None:
-                record["verdict"] = verdict
-            cap.rx.write(record)
-        cap.ticks.write({
-            "t": snap.t, "sec_mark": host.sec_mark, "host": [round(snap.host.x, 4),
-                                                            round(snap.host.y, 4)],
-            "host_speed": round(snap.host.speed, 3),
-            "host_heading": round(snap.host.heading, 3), "tracked": len(snap),
-            "step_ms": round(ms, 3), "decided_unix": decided,
-            "warnings": [[w.app, f"{w.rv_id:08X}", round(w.range_m, 3),
-                          round(w.threshold_m, 3) if w.threshold_m == w.threshold_m
-                          else None, w.side] for w in snap.warnings]})
-        for row in _track_rows(snap, host.sec_mark):
-            cap.tracks.write(row)
-        cap.flush()
-
-    def status(self, frames_per_s: float) -> str:
-        p99 = float(np.percentile(self.step_ms, 99)) if self.step_ms else 0.0
-        c = self.counters
-        events = sum(v for k, v in c.items() if k.startswith("events_"))
-        return (f"obu: {frames_per_s:7.0f} frames/s  decode errors {c['decode_errors']}  "
-                f"tracked {len(self.cam)}  tick p99 {p99:.1f} ms  deadline misses "
-                f"{c['deadline_misses']}  warning events {events}")
-
-    def all_counters(self, transport_stats: dict) -> dict:
-        out = dict(self.counters)
-        out["pending"] = len(self.pending)  # received, not yet due at a tick
-        out["cam_tentative"] = self.cam.tentative
-        out.update({f"cam_{k}": v for k, v in self.cam.counters.items()})
-        out.update({f"transport_{k}": v for k, v in transport_stats.items()})
-        if self.gc is not None:
-            out.update(self.gc.counters())
-        if self.step_ms:
-            out["tick_ms_p50"] = round(float(np.percentile(self.step_ms, 50)), 3)
-            out["tick_ms_p99"] = round(float(np.percentile(self.step_ms, 99)), 3)
-            out["tick_ms_max"] = round(float(max(self.step_ms)), 3)
-        return out
-
-    def close(self) -> None:
-        if self.cap is not None:
-            # received, never stepped (no host frame came after them): recorded all the
-            # same, so that the capture has every frame the OBU received
-            for m in self.pending:
-                rx_unix, data, verdict = self.pending_rx.pop(id(m), (None, b"", None))
-                record = {"rx_unix": rx_unix, "channel": "rv", "id": f"{m.temp_id:08X}",
-                          "msgCnt": m.msg_cnt, "sec_mark": m.sec_mark, "status": "unticked",
-                          "octets": len(data), "hex": data.hex()}
-                if verdict is not None:
-                    record["verdict"] = verdict
-                self.cap.rx.write(record)
-            self.pending = []
-            self.cap.close()
-        if self.warn_out is not sys.stdout:
-            self.warn_out.close()
-
-
-#: The longest a tick waits (s) for the frames that reached the receiver before its host
-#: frame, when that is longer than --collect-ms: half the 100 ms tick period, so a flood
-#: delays a tick but never stops it.
-DRAIN_S = 0.05
-
-
-async def _open_receiver(args: argparse.Namespace):
-    from hil.transport import open_receiver
-
+async def _open_receiver(args: argparse.Namespace) -> Receiver:
     if args.transport == "udp":
         return await open_receiver("udp", listen=args.listen, host_listen=args.host_listen)
     return await open_receiver("can", interface=args.can_interface, channel=args.can_channel,
@@ -532,7 +102,6 @@ async def serve(args: argparse.Namespace) -> dict:
     obu.gc = GcPolicy()  # start-up done: freeze it; collections after ticks only
     started = time.monotonic()
     last_status, frames_at_status = started, 0
-    collect_s = max(0.0, args.collect_ms) / 1000.0
     try:
         while not stop.is_set():
             if args.duration is not None and time.monotonic() - started > args.duration:
@@ -545,28 +114,21 @@ async def serve(args: argparse.Namespace) -> dict:
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(arrived.wait(), 0.2)
             while inbox:
-                channel, data, rx_unix = inbox.popleft()
-                obu.frame(channel, data, rx_unix)
-                if channel != "host" or obu.host is None:
+                host = obu.frame(*inbox.popleft())
+                if host is None:
                     continue
-                host, obu.host = obu.host, None
-                # Take every frame that reached the receiver before this host frame (still
-                # in its queue or socket buffer), then let the RV channel go quiet (up to
-                # --collect-ms), so frames sent just before the host's are in this tick;
-                # stop at the next host frame.
-                begun = time.monotonic()
-                deadline, limit = begun + collect_s, begun + max(collect_s, DRAIN_S)
-                while True:
-                    await asyncio.sleep(0)
-                    while inbox and inbox[0][0] == "rv":
+                # the tick rule (obu.tick): take the frames that reached the receiver
+                # before this host frame, let the RV channel go quiet, then step
+                obu.rule.host_frame(time.monotonic())
+                action = WAIT
+                while action is not STEP:
+                    if action is TAKE:
                         obu.frame(*inbox.popleft())
-                    now = time.monotonic()
-                    if (inbox and inbox[0][0] == "host") or now >= limit:
-                        break
-                    if rx.waiting():
-                        continue
-                    if now >= deadline or now - obu.last_rv_frame > 0.001:
-                        break
+                    else:
+                        await asyncio.sleep(0)
+                    head = inbox[0][0] if inbox else None
+                    action = obu.rule.next(time.monotonic(), head,
+                                           head is None and rx.waiting())
                 obu.tick(host)
                 obu.gc.after_tick()
                 break
@@ -574,10 +136,10 @@ async def serve(args: argparse.Namespace) -> dict:
             if now - last_status >= 1.0:
                 obu.gc.idle()  # no ticks for a while: still collect (hil.gcpolicy)
                 fps = (obu.counters["frames"] - frames_at_status) / (now - last_status)
-                obu.frames_per_s = fps
+                obu.status.frames_per_s = fps
                 last_status, frames_at_status = now, obu.counters["frames"]
                 if args.progress:
-                    print(obu.status(fps), file=sys.stderr, flush=True)
+                    print(obu.status.line(fps, len(obu.cam)), file=sys.stderr, flush=True)
                 if obu.cap is not None:
                     obu.cap.write_counters(obu.all_counters(rx.stats))
     finally:
@@ -621,15 +183,13 @@ def fix_mmap_threshold(size: int = 128 * 1024) -> bool:
 
 def run(args: argparse.Namespace) -> int:
     """``obu run`` after flags and config are merged; the exit status."""
-    from hil.transport import TransportError
-
     fix_mmap_threshold()
     if args.max_tracks is not None and args.max_tracks < 1:
         print("obu run: --max-tracks must be >= 1", file=sys.stderr)
         return 2
     try:
         check(args.predictor)
-        _verifier(args)  # the trust store, checked before anything starts
+        verifier(args)  # the trust store, checked before anything starts
     except ValueError as err:  # a neural predictor without PyTorch or its weights, a bad
         # --trust (hil.pki.PkiError)
         print(f"obu run: {err}", file=sys.stderr)

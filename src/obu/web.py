@@ -29,17 +29,25 @@ import json
 import math
 from collections.abc import Callable
 from importlib import resources
+from typing import TYPE_CHECKING
 
 from aiohttp import WSMsgType, web
+
+from hil.capture.schema import hex_id, track_rows
+
+if TYPE_CHECKING:
+    from catc.cam import MapSnapshot
 
 STATIC = {"index.html": "text/html", "app.js": "application/javascript",
           "style.css": "text/css"}
 
 
-def tick_state(snap, host_sec_mark: int | None, rows: list[dict], panel: dict,
+def tick_state(snap: MapSnapshot, host_sec_mark: int, panel: dict,
                truth: list[dict] | None = None) -> dict:
-    """The JSON-ready state of one tick from a :class:`catc.cam.MapSnapshot` and its track
-    rows (``obu.run._track_rows``)."""
+    """The JSON-ready state of one tick from a :class:`catc.cam.MapSnapshot`, its track
+    rows as the capture has them (:func:`hil.capture.schema.track_rows`) and the panel's
+    counters."""
+    rows = track_rows(snap, host_sec_mark)
     h = snap.host
     radius = h.radius_m if math.isfinite(h.radius_m) else None
     pp = h.predicted_path
@@ -50,7 +58,7 @@ def tick_state(snap, host_sec_mark: int | None, rows: list[dict], panel: dict,
                  "width": h.width, "pred": [round(pp.x, 3), round(pp.y, 3)]},
         "horizon_s": snap.horizon_s,
         "rvs": [_rv(r) for r in rows],
-        "warnings": [[w.app, f"{w.rv_id:08X}", round(w.range_m, 2),
+        "warnings": [[w.app, hex_id(w.rv_id), round(w.range_m, 2),
                       round(w.threshold_m, 2) if w.threshold_m == w.threshold_m else None]
                      for w in snap.warnings],
         "panel": panel, "truth": truth or [],

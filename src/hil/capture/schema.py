@@ -16,7 +16,8 @@ file                     writer  one record per ...
                                  sent (:func:`scheduled`)
 ``rve.frames.pcapng``    RVE     frame sent over UDP (or WSMP in Ethernet II)
 ``rve.frames.asc/.log``  RVE     CAN frame sent (ASC and candump log)
-``obu.config.json``      OBU     run: settings, versions, ENU origin (rewritten once it is known)
+``obu.config.json``      OBU     run: settings, versions, ENU origin (rewritten once it is known;
+                                 :func:`obu_config`)
 ``obu.counters.json``    OBU     run: every counter (rewritten every second and at the end)
 ``obu.rx.jsonl``         OBU     frame received, with what became of it (:func:`received`)
 ``obu.ticks.jsonl``      OBU     tick: host state, step time, warnings (:func:`tick`)
@@ -42,8 +43,9 @@ from catc.bsm import msg_cnt, sec_mark
 __all__ = [
     "OBU_CONFIG", "OBU_COUNTERS", "OBU_EVENTS", "OBU_MBR", "OBU_RX", "OBU_TICKS",
     "OBU_TRACKS", "RVE_CAN_STEM", "RVE_CONFIG", "RVE_PCAPNG", "RVE_SCHEDULE", "RVE_TRUTH",
-    "event", "hex_id", "message_key", "received", "received_key", "report", "rve_config",
-    "scheduled", "scheduled_key", "sent", "settings", "tick", "track_rows", "truth",
+    "event", "hex_id", "message_key", "obu_config", "received", "received_key", "report",
+    "rve_config", "scheduled", "scheduled_key", "sent", "settings", "tick", "track_rows",
+    "truth",
 ]
 
 RVE_CONFIG = "rve.config.json"
@@ -141,6 +143,16 @@ def sent(record: dict[str, Any], sent_unix: float, late_s: float, octets: int
 
 
 # --- the OBU's records ------------------------------------------------------------------
+
+def obu_config(settings: dict[str, Any], versions: dict[str, str],
+               origin: list[float] | None, started_unix: float) -> dict[str, Any]:
+    """The OBU's run (``obu.config.json``): its :func:`settings`, the software's versions
+    (:func:`hil.capture.writers.versions`), the ENU origin ``[lat, lon, h]`` of its map
+    (None until its first tick; the file is rewritten once it is known) and the wall-clock
+    time the file was written."""
+    return {"settings": settings, "versions": versions, "origin": origin,
+            "started_unix": started_unix}
+
 
 def received(rx_unix: float, channel: str, data: bytes, status: str, *,
              sender: tuple[int, int, int | None] | None = None, verdict: str | None = None,

@@ -1,0 +1,107 @@
+"""The OBU's capture directory (``obu run --capture DIR``): its files and records, all as
+:mod:`hil.capture.schema` names and builds them.
+
+The JSON-lines files are append-only and flushed at every tick, so ``kill -9`` loses at
+most the last tick; the config and the counters are rewritten whole (through a temporary
+file and a rename, so a reader never sees half of one).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+from catc.bsm import BSM
+from catc.cam import MapSnapshot
+from hil.capture import JsonLines, schema, versions
+
+__all__ = ["ObuCapture", "Received"]
+
+#: An RV message at its tick: the BSM, its receive time (unix s), its octets and its
+#: IEEE 1609.2 verdict (None when frames are not verified).
+Received = tuple[BSM, float | None, bytes, str | None]
+
+
+class ObuCapture:
+    """The files of one OBU run in ``directory`` (created): ``obu.config.json`` at once
+    (and again with the ENU origin at the first tick), the JSON-lines records as they
+    come, ``obu.mbr.jsonl`` only with ``--mbd``."""
+
+    def __init__(self, directory: Path, args: argparse.Namespace) -> None:
+        self.dir = directory
+        directory.mkdir(parents=True, exist_ok=True)
+        self.rx = JsonLines(directory / schema.OBU_RX)
+        self.ticks = JsonLines(directory / schema.OBU_TICKS)
+        self.tracks = JsonLines(directory / schema.OBU_TRACKS)
+        self.events = JsonLines(directory / schema.OBU_EVENTS)
+        self.mbr = JsonLines(directory / schema.OBU_MBR) if args.mbd else None
+        self.settings = schema.settings(args)
+        self.origin_written = False
+        self.write_config(None)
+
+    def _replace(self, name: str, text: str) -> None:
+        tmp = self.dir / f"{name}.tmp"
+        tmp.write_text(text)
+        tmp.replace(self.dir / name)
+
+    def write_config(self, origin: list[float] | None) -> None:
+        """``obu.config.json`` with the ENU origin ``[lat, lon, h]`` (None before the
+        first tick)."""
+        config = schema.obu_config(self.settings, versions(), origin, time.time())
+        self._replace(schema.OBU_CONFIG, json.dumps(config, indent=1, default=str))
+
+    def write_origin(self, origin: list[float]) -> None:
+        """The map's ENU origin into the config, once (the first tick that has it)."""
+        if not self.origin_written:
+            self.write_config(origin)
+            self.origin_written = True
+
+    def write_counters(self, counters: dict[str, Any]) -> None:
+        self._replace(schema.OBU_COUNTERS, json.dumps(counters, indent=1, sort_keys=True))
+
+    def frame(self, rx_unix: float | None, channel: str, data: bytes, status: str,
+              **details: Any) -> None:
+        """One received frame and what became of it (:func:`hil.capture.schema.received`,
+        whose keywords ``details`` are)."""
+        self.rx.write(schema.received(rx_unix, channel, data, status, **details))
+
+    def message(self, received: Received, status: str, **details: Any) -> None:
+        """One decoded RV message, stepped at a tick (``ok``) or never (``unticked``)."""
+        m, rx_unix, data, verdict = received
+        self.frame(rx_unix, "rv", data, status, sender=(m.temp_id, m.msg_cnt, m.sec_mark),
+                   verdict=verdict, **details)
+
+    def report(self, t_unix: float, t: float, reporter: int | None, detection: Any,
+               bsm: BSM, data: bytes) -> None:
+        """A misbehavior detection (:func:`hil.capture.schema.report`), with ``--mbd``."""
+        if self.mbr is not None:
+            self.mbr.write(schema.report(t_unix, t, reporter, detection, bsm, data))
+
+    def event(self, record: dict[str, Any]) -> None:
+        """A warning's start or end (:func:`hil.capture.schema.event`)."""
+        self.events.write(record)
+
+    def tick(self, snap: MapSnapshot, host_sec_mark: int, step_ms: float, decided: float,
+             received: list[Received]) -> None:
+        """One tick: the RV messages it took, the tick, its tracks; then flush."""
+        for r in received:
+            self.message(r, "ok", tick=snap.t, decided_unix=decided)
+        self.ticks.write(schema.tick(snap, host_sec_mark, step_ms, decided))
+        for row in schema.track_rows(snap, host_sec_mark):
+            self.tracks.write(row)
+        self.flush()
+
+    def _files(self) -> list[JsonLines]:
+        return [f for f in (self.rx, self.ticks, self.tracks, self.events, self.mbr)
+                if f is not None]
+
+    def flush(self) -> None:
+        for f in self._files():
+            f.flush()
+
+    def close(self) -> None:
+        for f in self._files():
+            f.close()

@@ -1,0 +1,130 @@
+"""The OBU daemon's state, and the two things that change it: a frame received
+(:meth:`Obu.frame`) and a tick stepped at a host frame (:meth:`Obu.tick`), with the
+tick's outputs (warnings, capture, live view).  The event loop that calls them is
+:func:`obu.run.serve`."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from catc.apps import SafetyApps
+from catc.bsm import BSM
+from catc.cam import CamConfig, ContextAwareMap, MapSnapshot, SecMarkClock
+from hil.capture import schema
+from obu.capture import ObuCapture, Received
+from obu.frames import Frames
+from obu.status import RateLimitedLog, Status
+from obu.tick import TICK_S, TickRule
+
+__all__ = ["Obu"]
+
+
+class Obu:
+    """The daemon's state: the CAM, the clock, the receive path with its pending messages,
+    the tick rule, the counters, the capture and the warnings' output."""
+
+    def __init__(self, args: argparse.Namespace) -> None:
+        self.args = args
+        config = CamConfig(predictor=args.predictor, max_tracks=args.max_tracks)
+        self.cam = ContextAwareMap(config, SafetyApps())
+        if args.predictor == "hgp":  # its compiled kernels, before the first tick
+            from catc.predict.hgp import warm_up
+
+            warm_up()
+        self.clock = SecMarkClock()
+        self.gc: Any = None  # the GcPolicy, once serve() has started everything
+        self.status = Status()
+        self.counters = self.status.counters
+        self.log = RateLimitedLog()
+        self.cap = ObuCapture(Path(args.capture), args) if args.capture else None
+        self.warn_out = (open(args.warnings, "a", encoding="utf-8")  # noqa: SIM115
+                         if args.warnings else sys.stdout)
+        self.frames = Frames(args, self.counters, self.log, self.clock, self.cap,
+                             self.cam.drop)
+        self.rule = TickRule(args.collect_ms)
+        self.last_frame = time.monotonic()
+        self.web: Any = None  # the live view's hub (obu.web.Hub) when --web is on
+
+    def frame(self, channel: str, data: bytes, rx_unix: float) -> BSM | None:
+        """One received frame (:meth:`obu.frames.Frames.take`): the host's BSM when it
+        is a host frame that decodes (it triggers a tick), else None."""
+        self.counters["frames"] += 1
+        self.counters[f"frames_{channel}"] += 1
+        self.last_frame = time.monotonic()
+        if channel == "rv":  # any datagram, decodable or not: the channel is not quiet
+            self.rule.rv_frame(self.last_frame)
+        return self.frames.take(channel, data, rx_unix)
+
+    def tick(self, host: BSM) -> MapSnapshot | None:
+        """Step the CAM at host frame ``host`` (:mod:`obu.tick`)."""
+        if host.sec_mark is None or host.lat is None or host.lon is None:
+            self.counters["host_incomplete"] += 1
+            self.log("host", "a host frame without time or position: no tick")
+            return None
+        now = self.clock(host.sec_mark)
+        due = self.frames.due(now, self.cam.config.max_future_s)
+        t0 = time.perf_counter()
+        try:
+            snap = self.cam.step(now, host, due)
+        except ValueError as err:  # time going backwards on the host channel
+            self.counters["host_rejected"] += 1
+            self.log("host", f"host frame rejected: {err}")
+            return None
+        ms = (time.perf_counter() - t0) * 1000.0
+        self.status.step_ms.append(ms)
+        self.counters["ticks"] += 1
+        if ms > TICK_S * 1000.0:
+            self.counters["deadline_misses"] += 1
+        decided = time.time()
+        received = self.frames.received(due)
+        self._outputs(snap, host, ms, decided, received)
+        if self.web is not None and (self.web.clients or self.web.polled):
+            self._publish(snap, host)
+        return snap
+
+    def _publish(self, snap: MapSnapshot, host: BSM) -> None:
+        """The tick's state to the live view (after the step: not in its time)."""
+        from obu.web import tick_state
+
+        panel = self.status.panel(self.cam.tentative)
+        self.web.publish(tick_state(snap, host.sec_mark, panel))
+
+    def _outputs(self, snap: MapSnapshot, host: BSM, ms: float, decided: float,
+                 received: list[Received]) -> None:
+        for e in snap.events:
+            rec = schema.event(e)
+            self.warn_out.write(json.dumps(rec) + "\n")
+            print(f"obu: {e.app.upper()} {e.kind} RV {rec['rv']} at t={rec['t']:.1f} s",
+                  file=sys.stderr, flush=True)
+            self.counters[f"events_{e.app}"] += 1
+            if self.cap is not None:
+                self.cap.event(rec)
+        self.warn_out.flush()
+        self.counters["warning_ticks"] += bool(snap.warnings)
+        if self.cap is None:
+            return
+        if not self.cap.origin_written and self.cam.frame is not None:
+            f = self.cam.frame
+            self.cap.write_origin([f.lat0, f.lon0, f.h0])
+        self.cap.tick(snap, host.sec_mark, ms, decided, received)
+
+    def all_counters(self, transport_stats: dict[str, int]) -> dict[str, Any]:
+        """Every counter (:meth:`obu.status.Status.all_counters`)."""
+        return self.status.all_counters(
+            len(self.frames.pending), self.cam.tentative, self.cam.counters,
+            transport_stats, None if self.gc is None else self.gc.counters())
+
+    def close(self) -> None:
+        if self.cap is not None:
+            # received, never stepped (no host frame came after them): recorded all the
+            # same, so that the capture has every frame the OBU received
+            for r in self.frames.unticked():
+                self.cap.message(r, "unticked")
+            self.cap.close()
+        if self.warn_out is not sys.stdout:
+            self.warn_out.close()

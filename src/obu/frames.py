@@ -1,0 +1,201 @@
+"""What becomes of each frame the OBU receives, before any tick: decoded, verified,
+checked for misbehavior, counted, and an RV message queued for its tick.
+
+* Decoding (:func:`catc.j2735.open_envelope`, :func:`catc.j2735.decode_frame`): a frame
+  that does not decode (garbage, truncated, another message, absurd values) is counted by
+  reason (``decode_errors``, ``decode_<reason>``), logged at most once per reason per
+  second, recorded with its reason as status, and dropped.
+* Security (``--verify log|enforce``): every RV frame's IEEE 1609.2 envelope (inside a
+  WSMP message or not) is verified with :class:`catc.security.Verifier` at its receive
+  time: signature, chain to the trusted root, psid 0x20, validity period, generationTime
+  freshness.  Each verdict is counted (``verify_ok``, ``verify_<reason>``) and kept in the
+  frame's record; ``enforce`` drops a frame that fails (status ``rejected``), ``log``
+  tracks it anyway.  Host frames are not verified (they are the host's own state, not
+  radio traffic).
+* Misbehavior (``--mbd``): :class:`catc.mbd.MisbehaviorDetector`'s checks on every RV
+  message that passes verification, on the host's clock; a detection is counted
+  (``mbd_<check>``) and reported, and a sender in quarantine is dropped with its track
+  (status ``quarantined``).
+* The queue: a decoded RV message waits in :attr:`Frames.pending` until the tick it is due
+  at (:meth:`Frames.due`, :mod:`obu.tick`).
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections import Counter
+from collections.abc import Callable
+from typing import Any
+
+from catc.bsm import BSM
+from catc.cam import SecMarkClock
+from catc.errors import DecodeError
+from catc.j2735 import decode_frame, open_envelope
+from catc.replay import split_due
+from obu.capture import ObuCapture, Received
+from obu.status import RateLimitedLog
+
+__all__ = ["Frames", "claimed_sender", "verifier"]
+
+
+def verifier(args: argparse.Namespace) -> Any:
+    """The IEEE 1609.2 verifier (:class:`catc.security.Verifier`) of ``--verify
+    log|enforce`` (None when off); ValueError (one line) for a missing or unusable trust
+    store."""
+    if args.verify in (None, "off"):
+        return None
+    if not args.trust:
+        raise ValueError(f"--verify {args.verify} needs --trust PKI_DIR or ROOT.oer")
+    from catc.security import Verifier
+    from hil.pki import trust_store
+
+    roots, cas = trust_store(args.trust)
+    try:
+        return Verifier(roots, certificates=cas)
+    except ValueError as err:
+        raise ValueError(f"--trust {args.trust}: {err}") from None
+
+
+def claimed_sender(frame: bytes) -> tuple[int, int, int | None] | None:
+    """Who a rejected frame claims to be (TemporaryID, msgCnt, secMark), for the capture;
+    None when it does not decode."""
+    try:
+        bsm = decode_frame(frame)
+    except DecodeError:
+        return None
+    return (bsm.temp_id, bsm.msg_cnt, bsm.sec_mark)
+
+
+class Frames:
+    """The receive path of ``obu run`` (see the module docstring).  ``counters``, ``log``
+    and ``clock`` (the host's) are the daemon's; ``cap`` its capture (or None); ``drop``
+    removes a quarantined sender's track from the map (:meth:`catc.cam.ContextAwareMap.drop`,
+    True when there was one)."""
+
+    #: A host frame older than this (s) is no position for the range and appearance
+    #: checks (catc.mbd: a stale host position gives false sudden appearances).
+    HOST_FRESH_S = 0.5
+
+    def __init__(self, args: argparse.Namespace, counters: Counter[str], log: RateLimitedLog,
+                 clock: SecMarkClock, cap: ObuCapture | None,
+                 drop: Callable[[int], bool]) -> None:
+        self.counters = counters
+        self.log = log
+        self.clock = clock
+        self.cap = cap
+        self.drop = drop
+        self.pending: list[BSM] = []  # decoded RV BSMs waiting for their tick
+        # id(bsm) -> (rx unix, octets, verdict)
+        self.pending_rx: dict[int, tuple[float, bytes, str | None]] = {}
+        self.verifier = verifier(args)
+        if self.verifier is not None:
+            from catc.security import unix_to_time64
+
+            self.to_time64 = unix_to_time64
+        self.mbd = None
+        if args.mbd:
+            from catc.mbd import MisbehaviorDetector
+
+            self.mbd = MisbehaviorDetector()
+        self.last_host: tuple[BSM, float, float] | None = None  # newest host frame: BSM,
+        # rx unix, its time on the host's clock
+        self.enforce = args.verify == "enforce"
+
+    def take(self, channel: str, data: bytes, rx_unix: float) -> BSM | None:
+        """One received frame on ``channel`` (``rv`` or ``host``): an RV message is
+        queued; the host's BSM is returned (it triggers a tick); None for the rest."""
+        verdict = None
+        try:
+            frame, envelope = open_envelope(data)
+            if channel == "rv" and self.verifier is not None:
+                verdict = self.verify(envelope, rx_unix)
+                if verdict != "ok" and self.enforce:
+                    self.log(verdict, f"dropped an RV frame that does not verify: {verdict}")
+                    if self.cap is not None:
+                        self.cap.frame(rx_unix, channel, data, "rejected",
+                                       sender=claimed_sender(frame), verdict=verdict)
+                    return None
+            bsm = decode_frame(frame)
+        except DecodeError as err:
+            self.counters["decode_errors"] += 1
+            self.counters[f"decode_{err.reason}"] += 1
+            self.log(err.reason, f"dropped an undecodable {channel} frame ({err})")
+            if self.cap is not None:
+                self.cap.frame(rx_unix, channel, data, err.reason)
+            return None
+        if channel == "rv":
+            if self.mbd is not None and self.misbehaves(bsm, rx_unix, data):
+                return None
+            self.pending.append(bsm)
+            self.pending_rx[id(bsm)] = (rx_unix, data, verdict)
+            return None
+        if bsm.sec_mark is not None:  # the host's clock (data time), for the MBD
+            self.last_host = (bsm, rx_unix, self.clock(bsm.sec_mark))
+        return bsm
+
+    def verify(self, envelope: Any, rx_unix: float) -> str:
+        """The 1609.2 verdict of one RV frame (``ok`` or a reason), counted."""
+        if envelope is None:
+            reason = "unsigned"
+        else:
+            reason = self.verifier.verify(envelope, self.to_time64(rx_unix)).reason
+        self.counters[f"verify_{reason}"] += 1
+        if reason != "ok":
+            self.counters["verify_rejected" if self.enforce else "verify_failed"] += 1
+        return reason
+
+    def misbehaves(self, bsm: BSM, rx_unix: float, data: bytes) -> bool:
+        """Run the misbehavior checks on one RV BSM; write a report per detection
+        (:meth:`obu.capture.ObuCapture.report`); True (drop it, and its track) when its
+        sender is in quarantine.
+
+        The checks' clock is the host's (its secMark time at the newest host frame), like
+        the CAM's: a replay faster than real time (``rve run --speed``) then looks to them
+        as it would on the road, where the receive clock and the senders' secMarks
+        advance together.  Before the first host frame nothing is checked."""
+        host = self.last_host
+        if host is None:
+            self.counters["mbd_no_host_yet"] += 1
+            return False
+        t = host[2]
+        fresh = rx_unix - host[1] <= self.HOST_FRESH_S
+        hb = host[0] if fresh else None
+        found = self.mbd.observe(bsm, t, hb.lat if hb else None, hb.lon if hb else None,
+                                 host_heading=hb.heading if hb else None)
+        for d in found:
+            self.counters[f"mbd_{d.check}"] += 1
+            if self.cap is not None:
+                self.cap.report(rx_unix, t, hb.temp_id if hb else None, d, bsm, data)
+        if not self.mbd.quarantined(bsm.temp_id, t):
+            return False
+        self.counters["mbd_quarantined"] += 1
+        keep = []
+        for m in self.pending:
+            if m.temp_id == bsm.temp_id:
+                self.pending_rx.pop(id(m), None)
+            else:
+                keep.append(m)
+        self.pending = keep
+        if self.drop(bsm.temp_id):
+            self.counters["mbd_tracks_dropped"] += 1
+        if self.cap is not None:
+            self.cap.frame(rx_unix, "rv", data, "quarantined",
+                           sender=(bsm.temp_id, bsm.msg_cnt, bsm.sec_mark))
+        return True
+
+    def due(self, now: float, future_s: float) -> list[BSM]:
+        """The RV messages a tick at ``now`` takes (:func:`catc.replay.split_due`), out of
+        the queue; the rest stay."""
+        due, self.pending = split_due(now, self.pending, future_s)
+        return due
+
+    def received(self, messages: list[BSM]) -> list[Received]:
+        """``messages`` with their receive time, octets and verdict, for the capture."""
+        return [(m, *self.pending_rx.pop(id(m), (None, b"", None))) for m in messages]
+
+    def unticked(self) -> list[Received]:
+        """The queue emptied: messages received after the last host frame, never
+        stepped."""
+        left = self.received(self.pending)
+        self.pending = []
+        return left

@@ -1,0 +1,61 @@
+"""The flags of ``obu run`` and the settings it takes when neither a flag nor
+``--config FILE.toml`` gives them (DESIGN.md's contract; :func:`hil.config.merge`)."""
+
+from __future__ import annotations
+
+import argparse
+
+from catc.predict import NAMES
+from hil.capture.schema import OBU_MBR
+from hil.config import address, web_address
+
+__all__ = ["DEFAULTS", "add_arguments"]
+
+DEFAULTS = {
+    "transport": "udp", "listen": ("127.0.0.1", 4500), "host_listen": ("127.0.0.1", 4501),
+    "predictor": "hgp", "capture": None, "duration": None, "idle_exit": None,
+    "warnings": None, "collect_ms": 5.0, "can_interface": "virtual", "can_channel": None,
+    "can_fd": False, "progress": True, "max_tracks": 1000, "verify": "off", "trust": None,
+    "mbd": False, "web": None,
+}
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of ``obu run`` (DESIGN.md's contract); unset ones come from --config."""
+    p.add_argument("--config", metavar="FILE.toml", help="settings file; flags override it")
+    p.add_argument("--transport", choices=("udp", "can"), help="udp (default) or can")
+    p.add_argument("--listen", type=address, help="UDP HOST:PORT of the RV frames "
+                   "(default 127.0.0.1:4500)")
+    p.add_argument("--host-listen", type=address, help="UDP HOST:PORT of the host "
+                   "vehicle's frames (default 127.0.0.1:4501)")
+    p.add_argument("--predictor", choices=NAMES, help="tracking predictor (default hgp)")
+    p.add_argument("--capture", metavar="DIR", help="capture directory (see --help)")
+    p.add_argument("--duration", type=float, metavar="S", help="stop after S s (wall clock)")
+    p.add_argument("--idle-exit", type=float, metavar="S",
+                   help="stop once no frame has arrived for S s (after the first)")
+    p.add_argument("--warnings", metavar="FILE", help="warning events as JSON lines here "
+                   "instead of stdout")
+    p.add_argument("--collect-ms", type=float, help="longest wait for the RV channel to go "
+                   "quiet before a step, after the frames already received are taken "
+                   "(default 5)")
+    p.add_argument("--max-tracks", type=int, help="most RVs tracked at once (default 1000)")
+    p.add_argument("--can-interface", choices=("socketcan", "virtual", "udp_multicast"),
+                   help="python-can interface for --transport can (default virtual)")
+    p.add_argument("--can-channel", metavar="NAME", help="CAN channel, e.g. vcan0")
+    p.add_argument("--can-fd", action="store_true", default=None, help="CAN FD frames")
+    p.add_argument("--verify", choices=("off", "log", "enforce"),
+                   help="IEEE 1609.2 verification of the RV frames: off (default), log "
+                        "(verify and record the verdict, track every frame) or enforce "
+                        "(drop what does not verify); needs --trust")
+    p.add_argument("--trust", metavar="PATH",
+                   help="trust store for --verify: a PKI directory (rve pki init: its root "
+                        "is trusted, its AA known) or a root certificate .oer file")
+    p.add_argument("--web", type=web_address, metavar="[HOST:]PORT",
+                   help="serve the live view (a web page of the map, /api/state) here; "
+                        "127.0.0.1 unless a host is named; off by default")
+    p.add_argument("--mbd", action="store_true", default=None,
+                   help="misbehavior detection (catc.mbd: F2MD's plausibility checks) on "
+                        "every RV frame that passes verification: detections go to "
+                        f"{OBU_MBR} and a quarantined sender is not tracked")
+    p.add_argument("--no-progress", dest="progress", action="store_false", default=None,
+                   help="no status line on stderr")

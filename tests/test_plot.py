@@ -16,7 +16,7 @@ from PIL import Image
 
 from captures import plot
 from captures.score import score
-from catc.cliargs import dispatch, make_parser
+from hil.cliargs import dispatch, make_parser
 from hil.transport.udp import free_ports
 from tests.test_obu import finish, rve, start_obu
 

@@ -457,8 +457,9 @@ def run_sweep(args: argparse.Namespace, prog: str = "sweep") -> dict:
           file=sys.stderr)
     t0 = time.monotonic()
     cpu: dict[str, float] = {}
-    rows = sweep(datasets, args.predictors, grid, range(args.seeds), fcw_predictors=fcw,
-                 workers=args.workers, dask=args.dask, progress=Progress(prog), cpu=cpu)
+    with Progress(prog) as progress:
+        rows = sweep(datasets, args.predictors, grid, range(args.seeds), fcw_predictors=fcw,
+                     workers=args.workers, dask=args.dask, progress=progress, cpu=cpu)
     elapsed = time.monotonic() - t0
     params = {"per": args.per, "rate": args.rate, "grid": args.grid, "burst": args.burst,
               "predictors": args.predictors, "fcw_predictors": fcw, "seeds": args.seeds,

@@ -3,15 +3,18 @@
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import math
 import subprocess
 import sys
+import time
 from functools import partial
 
 import numpy as np
 import pytest
 
+from captures.progress import Progress
 from catc.channel import bernoulli_received
 from catc.evaluate import evaluate, replay_track
 from catc.mobility import MobilityTable, Track
@@ -106,6 +109,31 @@ def test_default_bank_is_trained_and_says_how():
     assert bank.meta["trained_on"]
 
 
+class _Terminal(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def test_progress_is_a_line_per_tenth_off_a_terminal_and_a_tqdm_bar_on_one():
+    log = io.StringIO()
+    with Progress("job", log) as progress:
+        for done in range(1, 41):
+            progress(done * 0.25, 10.0)  # the sweep counts fractional costs
+            if done == 20:
+                progress.write("a line of the command")
+        progress(10.0, 10.0)  # after the end: nothing more
+    lines = log.getvalue().splitlines()
+    assert "\r" not in log.getvalue() and lines[6] == "a line of the command"
+    assert [line.split("%")[0] for line in lines if line.startswith("job: ")] == [
+        f"job: {p}" for p in (2, 10, 20, 30, 40, 50, 60, 70, 80, 90, 100)]
+    assert lines[-1].startswith("job: 100% (") and len(lines) == 12
+    tty = _Terminal()
+    with Progress("job", tty) as progress:
+        time.sleep(0.25)  # a bar from the first report after 0.2 s
+        progress(3, 10)  # left early: the bar stays at its last state
+    assert tty.getvalue().startswith("\rjob:  30%|") and tty.getvalue().endswith("\n")
+
+
 def test_cli_evaluate_and_train_bank_on_real_data(tmp_path):
     data = shared_path("openacc-zalazone", "short_setting_dynamic_part22.csv")
     out = subprocess.run(
@@ -113,6 +141,9 @@ def test_cli_evaluate_and_train_bank_on_real_data(tmp_path):
          "--per", "0,80", "--predictors", "ca,hgp", "--json", str(tmp_path / "rows.json")],
         capture_output=True, text=True, timeout=300, check=False)
     assert out.returncode == 0, out.stderr
+    progress = [line for line in out.stderr.splitlines() if line.startswith("evaluate: ")]
+    assert "\r" not in out.stderr and 2 <= len(progress) <= 11  # a pipe: a line per 10 %
+    assert progress[-1].startswith("evaluate: 100% (")
     rows = json.loads((tmp_path / "rows.json").read_text())
     assert {(r["predictor"], r["per"]) for r in rows} == {("ca", 0), ("ca", 80), ("hgp", 0),
                                                          ("hgp", 80)}

@@ -15,8 +15,8 @@ from PIL import Image
 
 from captures import plot
 from captures.score import score
-from catc.cliargs import dispatch, make_parser
 from hil.capture import read_lines, schema
+from hil.cliargs import dispatch, make_parser
 from hil.transport.udp import free_ports
 from tests.test_obu import finish, rve, start_obu
 

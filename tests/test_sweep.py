@@ -11,7 +11,8 @@ from functools import partial
 import numpy as np
 import pytest
 
-from captures.sweep import SweepError, load_datasets, summary, sweep
+from captures.sweep import SweepError, load_datasets, sweep
+from captures.sweep_tables import summary
 from catc.evaluate import evaluate
 from catc.predict import make_predictor
 from catc.sweep import (

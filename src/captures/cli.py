@@ -26,7 +26,7 @@ from captures import (
     train_nn,
     view,
 )
-from catc.cliargs import dispatch, make_parser
+from hil.cliargs import dispatch, make_parser
 
 DESCRIPTION = """\
 Capture-and-score post analysis for the V2X testbench.

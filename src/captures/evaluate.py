@@ -92,8 +92,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"{len(tables)} trips, {n_tracks} vehicles, "
           f"{sum(len(tr) for t in tables for tr in t.tracks.values()) / 600:.0f} vehicle-minutes",
           file=sys.stderr)
-    scores = evaluate(tables, factories, [p / 100 for p in args.per], range(args.seeds),
-                      progress=Progress("evaluate"))
+    with Progress("evaluate") as progress:
+        scores = evaluate(tables, factories, [p / 100 for p in args.per], range(args.seeds),
+                          progress=progress)
     print(table(scores))
     if args.json:
         rows = [{"predictor": s.predictor, "per": s.per * 100, "pte95_m": s.pte95_m,

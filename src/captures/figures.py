@@ -19,7 +19,7 @@ matplotlib.use("Agg")
 
 import matplotlib.pyplot as plt
 
-from captures.sweep import POOLED
+from captures.sweep_tables import POOLED, low_per, top_rate
 
 #: One colour and marker per predictor, the same in every figure.
 STYLE = {
@@ -41,10 +41,10 @@ def _series(rows: list[dict], axis: str, metric: str) -> dict[str, tuple[list, l
     """predictor -> (x, y) of ``metric`` against ``axis`` (PER at the top rate, or rate at
     the lowest PER)."""
     if axis == "per":
-        top = max(r["rate"] for r in rows)
+        top = top_rate(rows)
         rows = [r for r in rows if r["rate"] == top]
     else:
-        low = min(r["per"] for r in rows)
+        low = low_per(rows)
         rows = [r for r in rows if r["per"] == low]
     out: dict[str, tuple[list, list]] = {}
     for r in sorted(rows, key=lambda r: r[axis]):

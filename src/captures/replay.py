@@ -107,9 +107,9 @@ def run(args: argparse.Namespace) -> int:
         rejected = {k: v for k, v in counters.items()
                     if k in ("incomplete", "implausible", "late", "future", "duplicate",
                              "out_of_order", "jump") and v}
-        print(f"{table.name}: host {host}, {ticks} ticks, {np.mean(tracked or [0]):.1f} RVs "
-              f"tracked on average; warning ticks "
-              + (", ".join(f"{a} {warn_ticks[a]}" for a in apps_config.enabled)) + "; "
-              + f"{counters.get('accepted', 0)} BSMs applied"
-              + (f", rejected {rejected}" if rejected else ""), file=sys.stderr)
+        progress.write(f"{table.name}: host {host}, {ticks} ticks, "
+                       f"{np.mean(tracked or [0]):.1f} RVs tracked on average; warning ticks "
+                       + (", ".join(f"{a} {warn_ticks[a]}" for a in apps_config.enabled))
+                       + "; " + f"{counters.get('accepted', 0)} BSMs applied"
+                       + (f", rejected {rejected}" if rejected else ""))
     return 0

@@ -18,7 +18,8 @@ import sys
 import time
 from pathlib import Path
 
-from captures.sweep import SweepError, add_grid_arguments, grid_table, run_sweep
+from captures.sweep import SweepError, add_grid_arguments, run_sweep
+from captures.sweep_tables import grid_table
 from catc.predict import available
 
 #: The paper's Table "compare" (SPMD, PTE [m] at PER 0..95 %, 10 Hz): the peer's published

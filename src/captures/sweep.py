@@ -38,6 +38,7 @@ import numpy as np
 
 from captures.evaluate import csv_list
 from captures.progress import Progress
+from captures.sweep_tables import POOLED, summary
 from catc.mobility import MobilityTable
 from catc.predict import NAMES, available, check
 from catc.sweep import (
@@ -337,19 +338,14 @@ def _cost(table: MobilityTable, predictor: str, fcw: bool) -> float:
     return sum(len(tr) for tr in table.tracks.values()) * (0.15 + gp) / 1e4
 
 
-#: The dataset label of the rows that pool every dataset of a sweep (when it has several):
-#: all their ticks in one percentile and all their FCW ticks in one accuracy, so a dataset
-#: with more ticks weighs more (issue 17's targets are per dataset and pooled).
-POOLED = "pooled"
-
-
 def sweep(datasets: dict[str, list[MobilityTable]], predictors: list[str],
           grid: list[Cell], seeds: Iterable[int], *, fcw_predictors: Iterable[str] = (),
           workers: int = 1, dask: str | None = None,
           progress: Callable[[float, float], None] | None = None,
           cpu: dict[str, float] | None = None) -> list[Row]:
     """Every (dataset, predictor, cell) row over all trips and seeds (module docstring),
-    then, with more than one dataset, the :data:`POOLED` rows over all of them.
+    then, with more than one dataset, the :data:`~captures.sweep_tables.POOLED` rows
+    over all of them.
     ``progress(done, total)`` in units of estimated cost; ``cpu`` (when given) collects
     the CPU seconds spent per predictor and metric."""
     seeds = list(seeds)
@@ -393,88 +389,6 @@ def sweep(datasets: dict[str, list[MobilityTable]], predictors: list[str],
         if row.predictor not in fcw_set:
             row.fcw_accuracy = None
     return rows
-
-
-# --- tables -------------------------------------------------------------------------------------
-
-
-def top_rate(rows: list[dict]) -> float:
-    return max(r["rate"] for r in rows)
-
-
-def low_per(rows: list[dict]) -> float:
-    return min(r["per"] for r in rows)
-
-
-def grid_table(rows: list[dict], dataset: str, metric: str, axis: str = "per",
-               ratios_to: str | None = "hgp") -> tuple[list[str], list[list[str]]]:
-    """(header, body) of ``metric`` per predictor against ``axis`` for one dataset: against
-    PER at the top rate (the paper's SPMD table), or against rate at the lowest PER.
-    ``metric`` is a row key (``pte95_m``, ``fcw_accuracy``, ...) or ``exceed:TH``.  With
-    ``ratios_to``, rows ``X/hgp`` follow for CA, KF, CTRV and the LSTM."""
-    mine = [r for r in rows if r["dataset"] == dataset]
-    if axis == "per":
-        mine = [r for r in mine if r["rate"] == top_rate(mine)]
-        keys = sorted({r["per"] for r in mine})
-        header = ["PER [%]", *(f"{k:g}" for k in keys)]
-    else:
-        mine = [r for r in mine if r["per"] == low_per(mine)]
-        keys = sorted({r["rate"] for r in mine}, reverse=True)
-        header = ["Rate [Hz]", *(f"{k:g}" for k in keys)]
-    by = {(r["predictor"], r[axis]): r for r in mine}
-    names = list(dict.fromkeys(r["predictor"] for r in mine))
-
-    def value(r: dict | None):
-        if r is None:
-            return None
-        if metric.startswith("exceed:"):
-            return r["exceedances"].get(metric.split(":", 1)[1])
-        return r.get(metric)
-
-    def fmt(v) -> str:
-        if v is None:
-            return "-"
-        return f"{v:d}" if isinstance(v, int) else f"{v:.3f}"
-
-    body = [[n, *(fmt(value(by.get((n, k)))) for k in keys)] for n in names
-            if any(value(by.get((n, k))) is not None for k in keys)]
-    if ratios_to and ratios_to in names and metric == "pte95_m":
-        for n in names:
-            if n in ("ca", "kf", "ctrv", "imm", "lstm"):
-                cells_ = []
-                for k in keys:
-                    a, b = value(by.get((n, k))), value(by.get((ratios_to, k)))
-                    cells_.append(f"{a / b:.2f}" if a is not None and b else "-")
-                body.append([f"{n}/{ratios_to}", *cells_])
-    return header, body
-
-
-def text_table(header: list[str], body: list[list[str]]) -> str:
-    widths = [max(len(r[i]) for r in [header, *body]) for i in range(len(header))]
-    lines = ["  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in
-                       enumerate(zip(row, widths, strict=True))) for row in [header, *body]]
-    return "\n".join(lines)
-
-
-def summary(rows: list[dict]) -> str:
-    """The tables ``captures sweep`` prints."""
-    out = []
-    for ds in dict.fromkeys(r["dataset"] for r in rows):
-        mine = [r for r in rows if r["dataset"] == ds]
-        fcw = any(r["fcw_accuracy"] is not None for r in mine)
-        axes = (("per", {r["per"] for r in mine if r["rate"] == top_rate(mine)},
-                 f"PER at {top_rate(mine):g} Hz"),
-                ("rate", {r["rate"] for r in mine if r["per"] == low_per(mine)},
-                 f"rate at PER {low_per(mine):g} %"))
-        for axis, values, against in axes:
-            if len(values) < 2:
-                continue
-            for metric, title in (("pte95_m", "PTE95 [m]"), ("fcw_accuracy", "FCW accuracy")):
-                if metric == "pte95_m" or fcw:
-                    out.append(f"{ds}: {title} against {against}")
-                    out.append(text_table(*grid_table(rows, ds, metric, axis)))
-        out.append("")
-    return "\n".join(out)
 
 
 # --- the command ----------------------------------------------------------------------------------
@@ -543,8 +457,9 @@ def run_sweep(args: argparse.Namespace, prog: str = "sweep") -> dict:
           file=sys.stderr)
     t0 = time.monotonic()
     cpu: dict[str, float] = {}
-    rows = sweep(datasets, args.predictors, grid, range(args.seeds), fcw_predictors=fcw,
-                 workers=args.workers, dask=args.dask, progress=Progress(prog), cpu=cpu)
+    with Progress(prog) as progress:
+        rows = sweep(datasets, args.predictors, grid, range(args.seeds), fcw_predictors=fcw,
+                     workers=args.workers, dask=args.dask, progress=progress, cpu=cpu)
     elapsed = time.monotonic() - t0
     params = {"per": args.per, "rate": args.rate, "grid": args.grid, "burst": args.burst,
               "predictors": args.predictors, "fcw_predictors": fcw, "seeds": args.seeds,

@@ -72,7 +72,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"training on {len(tables)} trips, {len(tracks)} tracks, "
           f"{sum(len(tr) for tr in tracks) / 600:.0f} vehicle-minutes", file=sys.stderr)
     t0 = time.monotonic()
-    result = train(tracks, cfg, progress=Progress("train-bank"))
+    with Progress("train-bank") as progress:
+        result = train(tracks, cfg, progress=progress)
     seconds = time.monotonic() - t0
     bank = cluster(result.bank, args.cluster)
     print(f"bank before clustering: {len(result.bank)} pairs "

@@ -134,8 +134,9 @@ def run(args: argparse.Namespace) -> int:
         config = NnConfig.for_name(name)
         t0 = time.monotonic()
         try:
-            result = train(config, tr_tracks, va_tracks, tc, progress=Progress(name),
-                           log=lambda line: print(line, file=sys.stderr))
+            with Progress(name) as progress:
+                result = train(config, tr_tracks, va_tracks, tc, progress=progress,
+                               log=progress.write)
         except ValueError as err:
             return fail(f"{name}: {err}")
         net = result.network

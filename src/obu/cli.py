@@ -18,11 +18,11 @@ import binascii
 import json
 import sys
 
-from catc.cliargs import dispatch, make_parser
 from catc.errors import DecodeError
 from catc.j2735 import decode_frame
 from catc.j2735.ieee1609 import looks_like_1609, unwrap
 from catc.records import bsm_to_record
+from hil.cliargs import dispatch, make_parser
 
 DESCRIPTION = """\
 On-Board Unit: receives BSM frames and runs the CA-TC and the safety applications.

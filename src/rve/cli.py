@@ -17,11 +17,11 @@ import argparse
 import json
 import sys
 
-from catc.cliargs import dispatch, make_parser
 from catc.errors import EncodeError
 from catc.j2735 import encode_frame
 from catc.j2735.ieee1609 import wrap_unsecured
 from catc.records import KEYS, bsm_from_record
+from hil.cliargs import dispatch, make_parser
 
 DESCRIPTION = """\
 Remote Vehicle Emulator: replays mobility logs as SAE J2735 BSM frames.

@@ -1,8 +1,9 @@
 """Argument parsing shared by the ``rve``, ``obu`` and ``captures`` commands.
 
 A bad flag must give one line and a non-zero exit, not argparse's usage block, so
-:class:`Parser` raises :class:`UsageError` and :func:`dispatch` prints it.  This is the
-only module of ``catc`` that writes anything (one line to stderr, for the commands).
+:class:`Parser` raises :class:`UsageError` and :func:`dispatch` prints it (one line to
+stderr).  It lives in ``hil``, the I/O shell under the three commands, because it
+writes: nothing in :mod:`catc` does.
 """
 
 from __future__ import annotations

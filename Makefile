@@ -29,10 +29,15 @@ demo: $(VENV)/.installed
 # The whole suite; then the SocketCAN tests (pytest -m socketcan) on real vcan: they ran
 # above where this kernel has vcan, else tools/vcanvm.py runs them in a QEMU VM booting
 # Debian's stock kernel.  Where neither works they are reported as skipped, with the reason.
-test: $(VENV)/.installed-test debs
-	$(BIN)/ruff check src tests bench tools
+test: lint debs
 	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest
 	OPENBLAS_NUM_THREADS=1 $(BIN)/python tools/vcanvm.py pytest --if-needed
+
+# ruff, then the import rules of docs/architecture.md (import-linter; pyproject.toml has the
+# contracts, tools/import_contracts.py the one about cycles between files).
+lint: $(VENV)/.installed-test
+	$(BIN)/ruff check src tests bench tools
+	PYTHONPATH=tools $(BIN)/lint-imports --no-cache
 
 # Only the SocketCAN tests, on this kernel's vcan or in the VM.
 test-vcan: $(VENV)/.installed-test debs

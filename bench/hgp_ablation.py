@@ -3,7 +3,7 @@
 Each variant changes one thing from the shipped configuration (``HgpConfig()`` and the
 shipped kernel bank).  Every variant and baseline sees the same seeded Bernoulli loss on
 every vehicle of every trip (``catc.evaluate``).  This is the script behind the
-formulation notes in ``src/catc/predict/hgp.py`` and docs/hgp.md.
+formulation notes in ``src/catc/predict/hgp/`` and docs/reference/predictors.md.
 
     python bench/hgp_ablation.py [--json] [--per 90,95] [--workers 2] [--variants a,b]
 """

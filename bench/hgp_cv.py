@@ -12,7 +12,7 @@ of every trip: ``hgp_ablation.trip_errors``).
     python bench/hgp_cv.py [--json] [--a br-m0.5] [--b hgp] [--peer ca]
                            [--per 10,30,50,80,90,95] [--workers 2]
 
-Behind docs/hgp.md, "A margin per gap class".
+Behind docs/log/2026-11-26-hgp-blend-and-margin.md.
 """
 
 from __future__ import annotations

@@ -14,7 +14,7 @@ windows and are not timed.  Variants, each on fresh predictors and the same data
 * ``k=1``: the fast path with the old behaviour (``reselect_every=1``, no gap rule): the
   same forecasts to 1e-9 (tests/test_hgp.py).
 * ``default``: the fast path with the shipped ``HgpConfig`` (selection reused between
-  reselections, see docs/hgp.md for the PTE95 this costs).
+  reselections, see docs/log/2026-11-22-hgp-model-persistency.md for the PTE95 this costs).
 * ``batch``: ``default`` with ``forecast_many(rvs, now + 2)`` once per tick before the
   predictions (the stacked batch API); its per-forecast figures are per tick (tick time
   over forecasts made that tick, including every RV's two predictions).

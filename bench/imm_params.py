@@ -6,7 +6,7 @@ held-out OpenACC handling runs (``--holdout``), at PER 30 and 90 %, seed 0.
                                [--grid '[{"q_cv": 8, "q_ct": 8}, "kf"]']
 
 The shipped PSDs (``catc.predict.imm.Q_CV``, ``Q_CT``) are the setting with the lowest
-mean ratio to the KF's PTE95 over the four training cells (docs/hgp.md "IMM").
+mean ratio to the KF's PTE95 over the four training cells (docs/log/2026-11-25-imm.md).
 """
 
 from __future__ import annotations

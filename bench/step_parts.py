@@ -9,7 +9,8 @@ Taken from ``bench/step.py``'s scene (500 RVs, PER 50 %) after its warm-up:
   compiled (``kalman.compiled_kf_step``), on the states of that tick's KF branches;
 * ``forecast finish``: ``hgp.stacked.finish_stack`` (switching, integration, position variance)
   on the biggest forecast batch of a tick; no "before" row: the numpy code it replaced is
-  kept only as ``tests/test_hgp.py``'s reference (970 µs on e2495df, docs/hgp.md).
+  kept only as ``tests/test_hgp.py``'s reference (970 µs on e2495df,
+  docs/log/2026-11-26-hgp-python-second-pass.md).
 
 Best of ``--repeat`` runs each, µs per call of the whole piece and per item.
 

@@ -129,7 +129,7 @@ def nyc_fcw_event(path: Path) -> None:
     speed = table.meta["track_speed"][target]
     print(f"   The target broadcasts {table.tracks[target].speed[0]:.2f} m/s throughout while "
           f"its positions move at {float(np.median(speed)):.1f} m/s:")
-    print("   a stuck speed field; with its real speed no FCW fires (docs/catc.md).")
+    print("   a stuck speed field; with its real speed no FCW fires (docs/reference/catc.md).")
 
 
 def _free_tcp_port(preferred: int) -> int:

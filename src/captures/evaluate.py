@@ -21,7 +21,7 @@ from hil.datasets import DatasetError, load
 HELP = """\
 Replay every vehicle of the given trips through a seeded Bernoulli channel at each PER and
 report PTE95 (m) per predictor: the 95th percentile of the 2-D position error at every
-10 Hz tick (DESIGN.md).  Example:
+10 Hz tick (docs/architecture.md, "Metrics").  Example:
 
   captures evaluate --dataset ../shared/data/openacc-zalazone \\
       --dataset ngsim:../shared/data/ngsim-i80-pairs --per 0,50,80,90,95"""

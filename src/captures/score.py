@@ -1,7 +1,7 @@
 """``captures score DIR``: join the RVE's ground truth with the OBU's capture and score the run.
 
-* **PTE** (DESIGN.md, "Metrics"): at every OBU tick, for every tracked RV, the 2-D distance
-  between the OBU's estimate and the RV's true position at that tick's time.  Truth
+* **PTE** (docs/architecture.md, "Metrics"): at every OBU tick, for every tracked RV, the 2-D
+  distance between the OBU's estimate and the RV's true position at that tick's time.  Truth
   (``rve.truth.jsonl``) is moved into the OBU's ENU frame (its origin is in
   ``obu.config.json``) and interpolated to the tick.  Tick times are the host's secMark
   clock, which differs from the dataset's time by whole minutes; the offset comes from the

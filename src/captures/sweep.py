@@ -54,11 +54,12 @@ from catc.sweep import (
 )
 from hil.datasets import DatasetError, load_files
 
-#: The paper's PER grid (DESIGN.md, "Paper parameters").
+#: The paper's PER grid (docs/architecture.md, "Paper parameters").
 PAPER_PERS = (0, 10, 20, 30, 40, 50, 60, 70, 80, 90, 95)
 #: The rate axis from 10 to 1 Hz in five steps.  The full 10, 9, ..., 1 Hz grid costs ~2x
 #: the CPU of the whole PER grid (a GP forecasts after every message below 10 Hz) and adds
-#: little between 10 and 5 Hz (docs/sweep.md); pass --rate 10,9,8,7,6,5,4,3,2,1 for it.
+#: little between 10 and 5 Hz (docs/log/2026-11-25-report-cost.md); pass
+#: --rate 10,9,8,7,6,5,4,3,2,1 for it.
 PAPER_RATES = (10, 5, 3, 2, 1)
 
 HELP = """\

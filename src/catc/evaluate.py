@@ -3,7 +3,7 @@
 For every track (one remote vehicle) and every tick of its 10 Hz time base: if that
 tick's BSM arrived, the predictor is updated with it; then the predictor is asked
 for the position at the tick's time, and the position tracking error (PTE) is the 2-D
-distance to the true position (DESIGN.md, "Metrics").  A tick that has just received
+distance to the true position (docs/architecture.md, "Metrics").  A tick that has just received
 a fresh BSM counts too, so PER 0 gives PTE 0.  Ticks before the first received BSM
 are not scored (the RV is not yet known).  PTE95 is the 95th percentile over all
 scored ticks of all tracks and seeds.

@@ -1,6 +1,6 @@
 """BSMs as flat JSON-ready records: the form ``captures decode`` prints and ``rve encode`` reads.
 
-The keys are the command-line contract in DESIGN.md: ``msgCnt, id, secMark, lat, lon,
+The keys are a command-line contract (docs/architecture.md): ``msgCnt, id, secMark, lat, lon,
 elev, speed, heading, accel_long, accel_lat, accel_vert, yaw_rate, width, length``.
 Values are SI and degrees (see :mod:`catc.bsm`), ``id`` is 8 hex digits, and an
 unavailable field is ``None`` (JSON ``null``).  Each value is rounded to the

@@ -8,7 +8,7 @@ burst length) × predictors × trips × seeds.  Each run of the grid is this mod
 and the result is scored exactly as ``captures score`` scores a live capture:
 
 * **PTE**: at every tick, for every tracked RV, the 2-D distance between the CAM's
-  estimate and the RV's true position at the tick's time (DESIGN.md, "Metrics").
+  estimate and the RV's true position at the tick's time (docs/architecture.md, "Metrics").
 * **FCW accuracy**: at every tick, does an FCW condition hold, against the FCW on the
   true states (PER 0, 10 Hz, every message delivered; :func:`truth_fcw`).
 
@@ -62,7 +62,7 @@ def cells(pers: Sequence[float], rates: Sequence[float], *, grid: str = "paper",
     """The cells of a sweep.  ``pers`` are fractions.
 
     ``grid="paper"``: the paper's two sweeps, PER against Rate: every PER at the highest
-    rate, and every rate at the lowest PER (DESIGN.md: "Rate grid 10…1 Hz (with PER 0)").
+    rate, and every rate at the lowest PER (docs/architecture.md, "Paper parameters").
     ``grid="cross"``: every (PER, rate) pair.
     """
     if not pers or not rates:
@@ -276,8 +276,8 @@ def run_cell(table: MobilityTable, predictor: str, cell: Cell, seed: int,
 class Row:
     """One row of a sweep's table: a (dataset, predictor, cell) pooled over trips and seeds.
 
-    The DESIGN.md keys (``dataset, predictor, per, rate, pte95_m, fcw_accuracy, n_ticks``)
-    plus what the report needs."""
+    The contract's keys (docs/architecture.md: ``dataset, predictor, per, rate, pte95_m,
+    fcw_accuracy, n_ticks``) plus what the report needs."""
 
     dataset: str
     predictor: str

@@ -1,6 +1,6 @@
-"""Dataset specs on the command line (DESIGN.md): ``PATH`` (kind detected from the content),
-``KIND:PATH``, or ``scenario:NAME`` (a built-in scenario, ``hil/scenarios``).  A directory
-means every file in it that parses.  This is the one place that reads dataset files, for
+"""Dataset specs on the command line (docs/architecture.md): ``PATH`` (kind detected from the
+content), ``KIND:PATH``, or ``scenario:NAME`` (a built-in scenario, ``hil/scenarios``).  A
+directory means every file in it that parses.  This is the one place that reads dataset files, for
 ``rve run`` and for every ``captures`` command; the parsers in :mod:`catc.datasets` work on
 their text, or on their bytes when the file is not text (an OBU ``.bin`` log) or the kind
 is ``ode``.

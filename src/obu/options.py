@@ -1,5 +1,6 @@
 """The flags of ``obu run`` and the settings it takes when neither a flag nor
-``--config FILE.toml`` gives them (DESIGN.md's contract; :func:`hil.config.merge`)."""
+``--config FILE.toml`` gives them (docs/architecture.md, "Command-line contracts";
+:func:`hil.config.merge`)."""
 
 from __future__ import annotations
 
@@ -21,7 +22,8 @@ DEFAULTS = {
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    """The flags of ``obu run`` (DESIGN.md's contract); unset ones come from --config."""
+    """The flags of ``obu run`` (docs/architecture.md, "Command-line contracts"); unset ones
+    come from --config."""
     p.add_argument("--config", metavar="FILE.toml", help="settings file; flags override it")
     p.add_argument("--transport", choices=("udp", "can"), help="udp (default) or can")
     p.add_argument("--listen", type=address, help="UDP HOST:PORT of the RV frames "

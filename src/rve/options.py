@@ -1,4 +1,5 @@
-"""The settings of ``rve run``: its flags and their defaults (DESIGN.md's contract).
+"""The settings of ``rve run``: its flags and their defaults (docs/architecture.md,
+"Command-line contracts").
 
 A flag left unset is ``None`` here and comes from ``--config`` or :data:`DEFAULTS`
 (:func:`hil.config.run_daemon` merges them).
@@ -24,7 +25,8 @@ DEFAULTS = {
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    """The flags of ``rve run`` (DESIGN.md's contract); unset ones come from --config."""
+    """The flags of ``rve run`` (docs/architecture.md, "Command-line contracts"); unset ones
+    come from --config."""
     p.add_argument("--config", metavar="FILE.toml", help="settings file; flags override it")
     p.add_argument("--dataset", metavar="SPEC",
                    help="PATH, KIND:PATH or scenario:NAME (default scenario:highway-braking)")

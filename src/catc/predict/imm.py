@@ -75,7 +75,7 @@ P_STAY = 0.95
 #: White-acceleration PSD (m²/s³) of the CV model and of the CT model: chosen on the HGP
 #: bank's training trips (four OpenACC dynamic runs, the NGSIM pairs; PTE95 at PER 30 and
 #: 90 %, seed 0) from 0.01, 0.05, 0.5, 2 and 8, as the lowest mean ratio to the KF's
-#: PTE95; see docs/hgp.md "IMM".
+#: PTE95; see docs/log/2026-11-25-imm.md.
 Q_CV = 8.0
 Q_CT = 8.0
 #: Below |ω| (rad/s) the CT model's sin(ωt)/ω terms use their series.

@@ -11,7 +11,7 @@ east because headings are clockwise from north).  Direct HGP (``hgp-d``) puts th
 on x and y instead.
 
 Formulation.  Every choice below was measured on both shared datasets (OpenACC and
-NGSIM, all trips, PER 90 % and 95 %, one seed); the numbers are in docs/hgp.md.
+NGSIM, all trips, PER 90 % and 95 %, one seed); the numbers are in docs/reference/predictors.md.
 
 * Time relative to the last received sample (t ≤ 0) and each series relative to its last
   received value.  With that origin the linear term α2²·t·t' is a slope prior anchored at
@@ -48,13 +48,13 @@ integrated positions with the received ones).  If the error exceeds ``pte_th``, 
 speed and heading models are fitted by LOO-CV on the window (warm-started from the
 selected ones) and added to this predictor's online bank, bounded to ``online_max``
 models (oldest dropped first).  Off by default (``online``): with the shipped bank it
-changed PTE95 by under 4 % either way at 5–10 times the cost (docs/hgp.md).
+changed PTE95 by under 4 % either way at 5–10 times the cost (docs/reference/predictors.md).
 
 Model persistency (paper: a selected model stays the best for many samples): the bank
 selection is reused for up to ``reselect_every`` = 10 received BSMs and redone sooner after
 a gap of more than ``reselect_gap_s`` = 0.25 s (two or more BSMs lost in a row).  Measured
 on both datasets at PER 0–95 %: PTE95 within 1.5 % of selecting at every BSM, at about a
-quarter of the selections at PER 50 % (docs/hgp.md).
+quarter of the selections at PER 50 % (docs/log/2026-11-22-hgp-model-persistency.md).
 
 Cost.  An OBU makes one forecast per RV and received BSM; at 31 × 31 a LAPACK call from
 Python is mostly call overhead, not arithmetic.  The readable formulas (:mod:`.reference`

@@ -1,4 +1,4 @@
-"""The data-driven hybrid (issue 17; docs/hgp.md "Branches"): kinematic predictors run
+"""The data-driven hybrid (issue 17; docs/log/2026-11-25-hgp-branches.md): kinematic predictors run
 beside the GP, each scored at every BSM that ends a gap, and the best of a gap class
 answers it (or a blend of them does).  See ``HgpConfig.branches`` for the rule and the
 measurements behind it.
@@ -26,7 +26,8 @@ def position_of(predictor: Predictor) -> Callable[[float], tuple[float, float]]:
 class Branches:
     """The kinematic predictors that run beside the GP (``HgpConfig.branches``) and their
     running scores per gap class: which one answers a gap, or the blend's weights (issue
-    17; docs/hgp.md "Branches").  Made from :data:`catc.predict.kinematic_table.KINEMATIC`."""
+    17; docs/log/2026-11-25-hgp-branches.md).  Made from
+    :data:`catc.predict.kinematic_table.KINEMATIC`."""
 
     def __init__(self, c: HgpConfig) -> None:
         self.config = c

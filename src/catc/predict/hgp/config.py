@@ -1,5 +1,6 @@
 """The parameters of the HGP (:class:`HgpConfig`) and of the direct HGP
-(:class:`HgpDirectConfig`), with the measurements behind each default (docs/hgp.md).
+(:class:`HgpDirectConfig`), with the measurements behind each default
+(docs/reference/predictors.md).
 
 A configuration checks itself when it is made (``__post_init__``): a bad value fails there,
 with a ``ValueError`` that names it, not at the first forecast.
@@ -57,24 +58,25 @@ class HgpConfig:
     # received samples and after a gap longer than ``reselect_gap_s`` between two received
     # samples (0.25 s: two or more BSMs lost in a row at 10 Hz); in between the selected θ
     # are reused.  1 and inf select at every sample (the behaviour before).  Measured on
-    # both datasets: PTE95 within 1.5 % of that at PER 0-95 % (docs/hgp.md).
+    # both datasets: PTE95 within 1.5 % of that at PER 0-95 %
+    # (docs/log/2026-11-22-hgp-model-persistency.md).
     reselect_every: int = 10
     reselect_gap_s: float = 0.25
-    # Data-driven hybrid (issue 17; docs/hgp.md "Branches"): kinematic predictors run beside
-    # the GP (names from catc.predict, e.g. ("ca", "kf")).  At every BSM that ends a gap
-    # (one or more BSMs lost) each branch's squared position error at that BSM, from what
-    # it had forecast over the gap, enters a running score per branch (exponentially
-    # weighted, ``branch_decay`` the weight of the old score), one score per gap-length
-    # class (``branch_edges``, s: a gap of 0.2 s and one of 5 s are different questions);
-    # at ``tau`` s into a gap the branch with the lowest score of tau's class answers, a
-    # kinematic one only when its score is below ``branch_margin`` × the GP's; a class
-    # without scores yet is answered by the GP.  () is the GP alone (its own switching
-    # above still applies).  Measured (bench/hgp_ablation.py, docs/hgp.md "Branches"):
-    # CA and KF with margin 0.5 take 3-14 % off PTE95 at PER 10-50 % on both datasets
-    # and add at most 1.7 % at 80-95 %; margin 1 gains more at low PER and loses up to
-    # 5 % at PER 90 %; adding CTRV changed little.  Shipped: margin 1 for gaps up to
-    # 0.35 s and 0.5 for longer ones (per class: a float is every class's), chosen by
-    # leave-one-trip-out over both datasets (docs/hgp.md, "A margin per gap class").
+    # Data-driven hybrid (issue 17; docs/log/2026-11-25-hgp-branches.md): kinematic predictors run
+    # beside the GP (names from catc.predict, e.g. ("ca", "kf")).  At every BSM that ends a gap
+    # (one or more BSMs lost) each branch's squared position error at that BSM, from what it had
+    # forecast over the gap, enters a running score per branch (exponentially weighted,
+    # ``branch_decay`` the weight of the old score), one score per gap-length class
+    # (``branch_edges``, s: a gap of 0.2 s and one of 5 s are different questions); at ``tau`` s
+    # into a gap the branch with the lowest score of tau's class answers, a kinematic one only
+    # when its score is below ``branch_margin`` × the GP's; a class without scores yet is answered
+    # by the GP.  () is the GP alone (its own switching above still applies).  Measured
+    # (bench/hgp_ablation.py, docs/log/2026-11-25-hgp-branches.md): CA and KF with margin 0.5 take
+    # 3-14 % off PTE95 at PER 10-50 % on both datasets and add at most 1.7 % at 80-95 %; margin 1
+    # gains more at low PER and loses up to 5 % at PER 90 %; adding CTRV changed little.  Shipped:
+    # margin 1 for gaps up to 0.35 s and 0.5 for longer ones (per class: a float is every
+    # class's), chosen by leave-one-trip-out over both datasets
+    # (docs/log/2026-11-26-hgp-blend-and-margin.md).
     branches: tuple = ("ca", "kf")
     branch_decay: float = 0.8
     branch_margin: float | tuple = (1.0, 0.5, 0.5, 0.5)  # or one for every gap class
@@ -83,7 +85,7 @@ class HgpConfig:
     # (the GP's too) whose score in tau's class is at most ``branch_blend`` × the best,
     # weighted by score ** -blend_power (1: inverse-MSE weights); inf: every branch.  Off
     # (0): measured, it trades NGSIM's low and 90 % PER against OpenACC's 80-95 % as the
-    # margin does (docs/hgp.md, "Blending instead of switching").
+    # margin does (docs/log/2026-11-26-hgp-blend-and-margin.md).
     branch_blend: float = 0.0
     blend_power: float = 1.0  # weights ∝ score ** -blend_power
 
@@ -125,5 +127,5 @@ class HgpDirectConfig:
     #: this many BSMs arrived since the last fit (1 = at every forecast, as before).  Each
     #: fit is two LOO optimisations (~3 ms each on x/y windows): re-fitting at every BSM
     #: made hgp-d 8× the cost of hgp in a sweep; 10 cuts its cost 3.5× and moves PTE95 both
-    #: ways (NGSIM, 30 pairs: +32 % at PER 50 %, −12 % at 90 %; docs/hgp.md).
+    #: ways (NGSIM, 30 pairs: +32 % at PER 50 %, −12 % at 90 %; docs/reference/sweeps.md).
     refit_every: int = 10

@@ -5,7 +5,7 @@ The selected models are back-tested on the window (condition on all but its last
 ``backtest_s``, forecast those, compare integrated positions with the received ones); if
 they miss by more than ``pte_th``, new speed and heading models are fitted by LOO-CV on the
 window (:func:`catc.predict.gp.fit`, warm-started from the selected ones) and added to the
-predictor's online bank.  Off by default (``HgpConfig.online``, docs/hgp.md).
+predictor's online bank.  Off by default (``HgpConfig.online``, docs/reference/predictors.md).
 """
 
 from __future__ import annotations

@@ -63,10 +63,11 @@ debs:
 bench: $(VENV)/.installed
 	$(BIN)/python bench/codec.py
 
-# The paper's experiments on the shared real data as one report (out/report/report.html).
+# The paper's experiments on the shared real data as one report (out/report/report.html),
+# published as docs/results.md with its figures in docs/results/.
 report: $(VENV)/.installed-test
 	OPENBLAS_NUM_THREADS=1 $(BIN)/captures report --data $(SHARED) --workers 2 \
-	  --live 50@10,90@10 --out out/report
+	  --live 50@10,90@10 --out out/report --results docs/results.md
 
 # The learned models' training trips (the OpenACC dynamic runs and the NGSIM pairs) and the
 # trips held out of training (the OpenACC handling runs), shared by `bank` and `nn`.

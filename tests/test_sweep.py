@@ -239,9 +239,17 @@ def test_report_from_a_sweep_is_self_contained_and_states_the_verdict(tmp_path):
              "--workers", "1", "--json", str(rows))
     assert r.returncode == 0, r.stderr
     out = tmp_path / "report"
-    r = _cli("report", "--sweep", str(rows), "--no-hgp", "--out", str(out))
+    published = tmp_path / "docs" / "results.md"
+    (tmp_path / "docs" / "results").mkdir(parents=True)
+    (tmp_path / "docs" / "results" / "stale.png").write_bytes(b"old")
+    r = _cli("report", "--sweep", str(rows), "--no-hgp", "--out", str(out), "--results",
+             str(published))
     assert r.returncode == 0, r.stderr
     md = (out / "report.md").read_text()
+    # published (make report: docs/results.md): the same text, figures in results/ beside it
+    assert published.read_text() == md.replace("](figures/", "](results/")
+    figures = sorted(f.name for f in (tmp_path / "docs" / "results").iterdir())
+    assert figures == sorted(f.name for f in (out / "figures").glob("*.png"))
     doc = json.loads(rows.read_text())
     by = {(x["predictor"], x["per"], x["rate"]): x for x in doc["rows"]}
     # the H3 row as measured, and the paper's peer table next to it

@@ -14,6 +14,7 @@ import argparse
 import base64
 import html
 import json
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -63,6 +64,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="use this `captures sweep --json` document instead of running one")
     p.add_argument("--no-hgp", dest="hgp", action="store_false",
                    help="leave out the H1/H2 experiments (about a minute)")
+    p.add_argument("--results", type=Path, metavar="FILE.md",
+                   help="also publish the Markdown here, its figures in the folder of the "
+                        "same name beside it (make report: docs/results.md)")
     p.add_argument("--plot-capture", type=Path, metavar="DIR",
                    help="also draw this rve+obu capture (bird's-eye view and timeline; "
                         "default: the last --live capture)")
@@ -95,7 +99,10 @@ class Doc:
     def code(self, text: str) -> None:
         self.blocks.append(("code", text))
 
-    def markdown(self) -> str:
+    def markdown(self, figures: Path | None = None) -> str:
+        """The report in Markdown; its figures linked where they are under the output
+        directory, or, with ``figures``, by their names in that folder (relative to where
+        the Markdown is published: :func:`publish`)."""
         out = []
         for b in self.blocks:
             if b[0] == "h":
@@ -108,7 +115,8 @@ class Doc:
                 rows = [b[1], ["---"] * len(b[1]), *b[2]]
                 out.append("\n".join("| " + " | ".join(r) + " |" for r in rows))
             elif b[0] == "fig":
-                out.append(f"![{b[2]}]({b[1].relative_to(self.out)})\n\n*{b[2]}*")
+                link = b[1].relative_to(self.out) if figures is None else figures / b[1].name
+                out.append(f"![{b[2]}]({link.as_posix()})\n\n*{b[2]}*")
             elif b[0] == "code":
                 out.append("```\n" + b[1] + "\n```")
         return "\n\n".join(out) + "\n"
@@ -498,6 +506,20 @@ def _hgp_section(doc: Doc, hgp: dict) -> None:
                      "H2 new kernels over driving time on held-out trips")
 
 
+def publish(doc: Doc, target: Path) -> None:
+    """Write the report's Markdown to ``target`` (``make report``: docs/results.md) and its
+    figures into the folder of the same name beside it (docs/results/), replacing the
+    figures a previous report put there."""
+    folder = target.with_suffix("")
+    folder.mkdir(parents=True, exist_ok=True)
+    for old in folder.glob("*.png"):
+        old.unlink()
+    for b in doc.blocks:
+        if b[0] == "fig":
+            shutil.copyfile(b[1], folder / b[1].name)
+    target.write_text(doc.markdown(figures=Path(folder.name)))
+
+
 def run_hgp_experiments(data: Path) -> dict:
     from captures import hgp_experiments as hx
 
@@ -567,4 +589,7 @@ def run(args: argparse.Namespace) -> int:
     (out / "report.html").write_text(doc.html("CA-TC / HGP on real data"))
     for name in ("report.md", "report.html", "sweep.json"):
         print(out / name)
+    if args.results:
+        publish(doc, args.results)
+        print(args.results)
     return 0

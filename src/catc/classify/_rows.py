@@ -17,7 +17,9 @@ operations numpy applies to each entry, here in the same order; arctan2 and hypo
 numpy and math versions need not agree, are numpy's on arrays of the rows in both cases;
 Eqs. (tc_lateral) and (tc_heading) are the scalar classifiers, which make the same
 comparisons as :func:`lateral_codes` / :func:`direction_codes`.  tests/test_cam_exact.py
-runs both on the same rows.
+runs both on the same rows.  The helpers cost a Python call per row and formula: against
+the formulas written out in the loop, about 0.7 % of the instructions of a CAM step with
+one RV and 1.5 % with eight (``ca`` predictor, callgrind), the price of writing them once.
 """
 
 from __future__ import annotations
@@ -148,7 +150,9 @@ def _classify_rows(hosts: Sequence[HostPath], bounds: list[tuple[int, int]] | No
     lateral: list[int] = []
     direction: list[int] = []
     for h, di, ln in zip(rv_heading.tolist(), d, lane, strict=True):
-        df = _heading_gap(h, ln)
+        # |heading_diff_deg(h, ln)|: wrapped to [-180, 180) as geo._wrap180 does it
+        w = (h - ln + 180.0) % 360.0
+        df = abs((0.0 if w >= 360.0 else w) - 180.0)
         diff.append(df)
         lateral.append(LATERAL_CODES.index(classify_lateral(di, config.w_lane)))
         direction.append(DIRECTION_CODES.index(classify_direction(df, config)))
@@ -245,9 +249,3 @@ def _project_rows(hosts: Sequence[HostPath], bounds: list[tuple[int, int]] | Non
             s[sel], d[sel], lane[sel] = hs[use], hd[use], hl[use]
     return s, d, lane
 
-
-def _heading_gap(rv_heading_deg: float, lane_heading_deg: float) -> float:
-    """``|heading_diff_deg(rv, lane)|`` on floats: wrapped to ``[-180, 180)`` as
-    ``catc.geo._wrap180`` does it (360 after the modulo is 0), then made absolute."""
-    w = (rv_heading_deg - lane_heading_deg + 180.0) % 360.0
-    return abs((0.0 if w >= 360.0 else w) - 180.0)

@@ -70,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
     cam.step(now, host, msgs)
     stacked.finish_stack = finish
     later = now + cam.config.horizon_s
-    preds = [tr.predictor for tr in cam._tracks.values()]
+    preds = [tr.predictor for tr in cam._table.tracks.values()]
     reads = [a for p in preds for a in p.plan_pair(now, later) if a.__class__ is tuple]
     kfs = [k for p in preds for k in p._branches.kin if isinstance(k, KalmanPredictor)]
     args_kf = [(0.2, k.q, k._r, k._p, k._east, k._north, k._east, k._north) for k in kfs]

@@ -29,11 +29,11 @@ from importlib import resources
 import numpy as np
 import pytest
 
-from catc import classify, geo
+from catc import geo
 from catc.apps import SafetyApps
 from catc.cam import CamConfig, ContextAwareMap, MapSnapshot
 from catc.channel import ChannelConfig
-from catc.classify import ClassifyConfig, HostPath, classify_many, classify_paths
+from catc.classify import ClassifyConfig, HostPath, _rows, classify_many, classify_paths
 from catc.geo import EnuFrame
 from catc.mobility import MobilityTable
 from catc.replay import plan, simulate
@@ -109,7 +109,7 @@ def _replay(table: MobilityTable, duration: float | None = None) -> list[MapSnap
 def _numpy_paths_digest(monkeypatch, table: MobilityTable) -> str:
     """The digest of :func:`_replay` with every fast path off."""
     with monkeypatch.context() as m:
-        m.setattr(classify, "_SMALL_ROWS", -1)
+        m.setattr(_rows, "SMALL_ROWS", -1)
         m.setattr(geo, "_SMALL_POINTS", -1)
         return _digest(_replay(table))
 
@@ -144,7 +144,7 @@ def test_openacc_platoon_fast_paths_are_exact(monkeypatch) -> None:
                                   "short_setting_handling_part36.csv")))[0]
     snaps = _replay(table)
     sizes = {len(s) for s in snaps}
-    assert min(sizes) <= classify._SMALL_ROWS // 2 < max(sizes)  # both paths, and switches
+    assert min(sizes) <= _rows.SMALL_ROWS // 2 < max(sizes)  # both paths, and switches
     assert _digest(snaps) == _numpy_paths_digest(monkeypatch, table)
 
 
@@ -154,7 +154,7 @@ def test_sumo_highway_braking_fast_paths_are_exact(monkeypatch) -> None:
     path = resources.files("hil").joinpath("scenarios", "highway-braking.fcd.xml")
     table = _load(f"sumo:{path}")[0]
     snaps = _replay(table)
-    assert max(len(s) for s in snaps) > classify._SMALL_ROWS // 2
+    assert max(len(s) for s in snaps) > _rows.SMALL_ROWS // 2
     apps = {w.app for s in snaps for w in s.warnings}
     assert apps == {"fcw", "eebl", "bsw", "lcw"}
     assert _digest(snaps) == _numpy_paths_digest(monkeypatch, table)
@@ -188,10 +188,10 @@ def test_row_by_row_classification_is_the_numpy_one(monkeypatch, seed: int,
     h = np.concatenate([rng.uniform(0, 360, n), [180.0, -0.0]])
     counts = (len(x) // 2, len(x) - len(x) // 2)
     cfg = ClassifyConfig()
-    assert len(x) <= classify._SMALL_ROWS
+    assert len(x) <= _rows.SMALL_ROWS
     small = classify_paths((now, later), counts, x, y, h, cfg)
     single = classify_many(now, x, y, h, cfg)
-    monkeypatch.setattr(classify, "_SMALL_ROWS", -1)
+    monkeypatch.setattr(_rows, "SMALL_ROWS", -1)
     assert _bits(small) == _bits(classify_paths((now, later), counts, x, y, h, cfg))
     assert _bits([single]) == _bits([classify_many(now, x, y, h, cfg)])
 

@@ -13,7 +13,8 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
-__all__ = ["ConfigError", "address", "merge", "percent", "run_daemon", "web_address"]
+__all__ = ["ConfigError", "add_can_arguments", "address", "merge", "percent", "run_daemon",
+           "web_address"]
 
 
 def address(text: str) -> tuple[str, int]:
@@ -36,6 +37,14 @@ def percent(text: str) -> float:
     if not 0.0 <= value <= 100.0:
         raise argparse.ArgumentTypeError(f"a percentage from 0 to 100, got {text}")
     return value
+
+
+def add_can_arguments(p: argparse.ArgumentParser) -> None:
+    """The CAN bus flags that ``rve run`` and ``obu run`` share (``--transport can``)."""
+    p.add_argument("--can-interface", choices=("socketcan", "virtual", "udp_multicast"),
+                   help="python-can interface for --transport can (default virtual)")
+    p.add_argument("--can-channel", metavar="NAME", help="CAN channel, e.g. vcan0")
+    p.add_argument("--can-fd", action="store_true", default=None, help="CAN FD frames")
 
 
 class ConfigError(ValueError):

@@ -8,7 +8,7 @@ import argparse
 
 from catc.predict import NAMES
 from hil.capture.schema import OBU_MBR
-from hil.config import address, web_address
+from hil.config import add_can_arguments, address, web_address
 
 __all__ = ["DEFAULTS", "add_arguments"]
 
@@ -41,10 +41,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "quiet before a step, after the frames already received are taken "
                    "(default 5)")
     p.add_argument("--max-tracks", type=int, help="most RVs tracked at once (default 1000)")
-    p.add_argument("--can-interface", choices=("socketcan", "virtual", "udp_multicast"),
-                   help="python-can interface for --transport can (default virtual)")
-    p.add_argument("--can-channel", metavar="NAME", help="CAN channel, e.g. vcan0")
-    p.add_argument("--can-fd", action="store_true", default=None, help="CAN FD frames")
+    add_can_arguments(p)
     p.add_argument("--verify", choices=("off", "log", "enforce"),
                    help="IEEE 1609.2 verification of the RV frames: off (default), log "
                         "(verify and record the verdict, track every frame) or enforce "

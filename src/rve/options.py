@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import argparse
 
-from hil.config import address, percent
+from hil.config import add_can_arguments, address, percent
 
 __all__ = ["DEFAULTS", "add_arguments"]
 
@@ -70,9 +70,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="add a misbehaving sender (repeatable): ghost, sudden, sybil, replay, "
                         "offset, speed, unsigned, bad-signature, foreign-cert; each message "
                         "is labelled in rve.schedule.jsonl (catc.attacks has the parameters)")
-    p.add_argument("--can-interface", choices=("socketcan", "virtual", "udp_multicast"),
-                   help="python-can interface for --transport can (default virtual)")
-    p.add_argument("--can-channel", metavar="NAME", help="CAN channel, e.g. vcan0")
-    p.add_argument("--can-fd", action="store_true", default=None, help="CAN FD frames")
+    add_can_arguments(p)
     p.add_argument("--no-progress", dest="progress", action="store_false", default=None,
                    help="no progress line on stderr")

@@ -26,7 +26,7 @@ import json
 import os
 import struct
 from pathlib import Path
-from typing import Any, BinaryIO, TextIO
+from typing import IO, Any
 
 __all__ = ["CanLogs", "JsonLines", "PcapngWriter", "can_log", "ethernet", "udp_packet",
            "versions"]
@@ -44,18 +44,14 @@ def versions() -> dict[str, str]:
     return {"catc-hil": own, "python": sys.version.split()[0]}
 
 
-class JsonLines:
-    """Append-only JSON lines at ``path`` (created with its directory)."""
+class _CaptureFile:
+    """A capture file opened for writing (its directory made), flushed and closed."""
 
-    def __init__(self, path: str | os.PathLike) -> None:
+    def __init__(self, path: str | os.PathLike, mode: str) -> None:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._f: TextIO = open(self.path, "a", encoding="utf-8")  # noqa: SIM115
-        self.lines = 0
-
-    def write(self, record: dict[str, Any]) -> None:
-        self._f.write(json.dumps(record, separators=(",", ":"), allow_nan=True) + "\n")
-        self.lines += 1
+        encoding = None if "b" in mode else "utf-8"
+        self._f: IO[Any] = open(self.path, mode, encoding=encoding)  # noqa: SIM115
 
     def flush(self) -> None:
         """Hand everything written so far to the OS (a kill -9 no longer loses it)."""
@@ -65,6 +61,18 @@ class JsonLines:
         if not self._f.closed:
             self._f.flush()
             self._f.close()
+
+
+class JsonLines(_CaptureFile):
+    """Append-only JSON lines at ``path`` (created with its directory)."""
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        super().__init__(path, "a")
+        self.lines = 0
+
+    def write(self, record: dict[str, Any]) -> None:
+        self._f.write(json.dumps(record, separators=(",", ":"), allow_nan=True) + "\n")
+        self.lines += 1
 
 
 def _checksum16(data: bytes) -> int:
@@ -114,7 +122,7 @@ def ethernet(dst: bytes, src: bytes, ethertype: int, payload: bytes) -> bytes:
     return bytes(dst) + bytes(src) + struct.pack("!H", ethertype) + bytes(payload)
 
 
-class PcapngWriter:
+class PcapngWriter(_CaptureFile):
     """Append-only pcapng: interface 0 carries raw IP packets (link type RAW), interface 1
     Ethernet frames (link type ETHERNET: WSMP on ethertype 0x88DC);
     ``write(packet, t_unix, interface=0)``, ``flush()``."""
@@ -124,9 +132,7 @@ class PcapngWriter:
     RAW, ETHERNET = 0, 1
 
     def __init__(self, path: str | os.PathLike, comment: str = "catc-hil") -> None:
-        self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._f: BinaryIO = open(self.path, "wb")  # noqa: SIM115
+        super().__init__(path, "wb")
         shb = struct.pack("<IHHq", 0x1A2B3C4D, 1, 0, -1) + _option(1, comment.encode()) \
             + _option(0, b"")
         self._f.write(_block(0x0A0D0D0A, shb))
@@ -142,14 +148,6 @@ class PcapngWriter:
         body = struct.pack("<IIIII", interface, us >> 32, us & 0xFFFFFFFF, len(packet), len(packet))
         self._f.write(_block(0x00000006, body + packet + b"\x00" * (-len(packet) % 4)))
         self.packets += 1
-
-    def flush(self) -> None:
-        self._f.flush()
-
-    def close(self) -> None:
-        if not self._f.closed:
-            self._f.flush()
-            self._f.close()
 
 
 class CanLogs:

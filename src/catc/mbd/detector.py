@@ -1,59 +1,18 @@
-"""Misbehavior detection (MBD) on BSMs that passed IEEE 1609.2 verification.
-
-A valid signature says who sent a message, not that it is true: an insider with a valid
-pseudonym certificate can broadcast a ghost vehicle, a shifted position or a speed that
-contradicts its own positions.  :class:`MisbehaviorDetector` runs plausibility checks on
-every received BSM and keeps the sender's recent history, so that the OBU can drop
-implausible messages and quarantine their senders (their tracks raise no warning).
-
-The checks are the legacy checks of F2MD (J. Kamel et al., "Simulation Framework for
-Misbehavior Detection in Vehicular Networks", IEEE TVT 69(6), 2020), read from its source:
-``LegacyChecks.cc`` and ``F2MDParameters.h`` of IRT-SystemX/veins-f2md
-(``src/veins/modules/application/f2md/``, commit 1d529e5), ``MDMLib.cc`` there for the
-kinematic envelope and the rectangle overlap, and ``F2MDVeinsApp.cc`` for the vehicle limits;
-the older ``josephkamel/F2MD`` tree (``f2mdVeinsApp/``) has the same checks with ``#define``
-constants.  Each threshold below cites its F2MD constant; where it had to change for a
-10 Hz BSM on a real radio, the comment says why.  F2MD's names map to ours as:
-
-========================================  ============================================
-F2MD (``LegacyChecks.cc``)                 ``Detection.check``
-========================================  ============================================
-RangePlausibilityCheck                    ``range``
-PositionConsistancyCheck                  ``position-consistency``
-SpeedConsistancyCheck, SpeedPlausibility  ``speed-consistency``
-PositionSpeedConsistancyCheck             ``position-speed``
-SuddenAppearenceCheck                     ``sudden-appearance``
-BeaconFrequencyCheck (+ secMark clock)    ``frequency``
-PositionHeadingConsistancyCheck           ``heading``
-(none; VeReMi extension's grid Sybil)     ``sybil``
-IntersectionCheck, MultipleIntersection   ``intersection``
-========================================  ============================================
-
-F2MD's PositionPlausibilityCheck (distance from the road map) needs a map and is not done;
-its Kalman checks belong to its newer "Kalman" versions, not the legacy set.  SAE J3287
-(misbehavior reports; it reuses the observation structure of ETSI TS 103 759, whose
-observation names include Beacon-IntervalTooSmall, Position-ChangeTooLarge,
-Speed-ValueTooLarge-VehicleType, Speed-ChangeTooLarge, LongAcc-ValueTooLarge) is what a
-report built from a :class:`Detection` would carry; ``evidence`` holds the numbers.
-
-Conventions: positions are WGS-84 degrees as in :class:`catc.bsm.BSM`; distances come from
-a local metric scale (:func:`local_offset_m`, checked against :mod:`catc.geo`'s geodesics
-in the tests: catc.geo's pyproj calls cost ~11 us each, more than the whole budget of one
-message here).  Headings are degrees clockwise from north.  Times: the sender's own clock
-is its secMark (ms within the UTC minute, wrapped at 60000); ``t`` is the caller's
-receive clock.  Pure: no I/O, no clock of its own.  docs/mbd.md has each check's formula,
-threshold and source, the quarantine rule and the measured cost.
-"""
+"""The detector: per-sender state, the neighbour grid, the quarantine, and ``observe``,
+which runs the checks on one message (the package docstring has the overview)."""
 
 from __future__ import annotations
 
 import math
 import operator
 from collections import Counter, OrderedDict
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Any
 
-__all__ = ["CHECKS", "Detection", "MbdConfig", "MisbehaviorDetector", "local_offset_m"]
+from catc.mbd.config import MbdConfig
+from catc.mbd.geometry import RAD, dlon, iou, max_min_dist, scale
+
+__all__ = ["CHECKS", "Detection", "MisbehaviorDetector"]
 
 #: The check names a :class:`Detection` carries.
 CHECKS = ("range", "position-consistency", "speed-consistency", "position-speed",
@@ -63,40 +22,8 @@ CHECKS = ("range", "position-consistency", "speed-consistency", "position-speed"
 #: not become the sender's reference (one bad message must not poison the next good one).
 #: Failures of the others (the message's position is self-consistent) still update it.
 _TRACK_CHECKS = frozenset({"position-consistency", "speed-consistency", "frequency"})
-
-# WGS-84
-_A = 6_378_137.0
-_F = 1.0 / 298.257223563
-_E2 = _F * (2.0 - _F)
-_RAD = math.pi / 180.0
 _SCORE_CAP = 1e6
-
-
-def _scale(lat: float) -> tuple[float, float]:
-    """Metres per degree of longitude and of latitude at ``lat`` (WGS-84 radii of
-    curvature: prime vertical N and meridian M)."""
-    s = math.sin(lat * _RAD)
-    w = 1.0 - _E2 * s * s
-    n = _A / math.sqrt(w)
-    return n * math.cos(lat * _RAD) * _RAD, n * (1.0 - _E2) / w * _RAD
-
-
-def _dlon(a: float, b: float) -> float:
-    """``a - b`` in degrees of longitude, across the antimeridian the short way."""
-    d = a - b
-    if d > 180.0:
-        d -= 360.0
-    elif d < -180.0:
-        d += 360.0
-    return d
-
-
-def local_offset_m(lat1: float, lon1: float, lat2: float, lon2: float) -> tuple[float, float]:
-    """East and north (m) of point 2 from point 1, on the WGS-84 ellipsoid's local scale at
-    their mean latitude: within 1e-6 of the geodesic distance up to 2 km (the tests check
-    it against :func:`catc.geo.distance_m` and :func:`catc.geo.bearing_deg`)."""
-    kx, ky = _scale(0.5 * (lat1 + lat2))
-    return _dlon(lon2, lon1) * kx, (lat2 - lat1) * ky
+_DEFAULT = MbdConfig()
 
 
 def _num(x: Any) -> float | None:
@@ -135,255 +62,6 @@ def _ratio(num: float, den: float) -> float:
         return _SCORE_CAP
     return min(num / den, _SCORE_CAP)
 
-
-def _max_min_dist(cur: float, old: float, dt: float, accel: float, decel: float,
-                  vmax: float) -> tuple[float, float]:
-    """Least and greatest distance (m) a vehicle covers in ``dt`` s going from speed
-    ``old`` to ``cur`` with accelerations within ``accel``/``decel`` and speed within
-    ``vmax``: F2MD ``MDMLib::calculateMaxMinDist`` (accelerate then brake for the
-    greatest, brake then accelerate for the least).  Two changes: the switch time is kept
-    in [0, dt] (an infeasible speed change is the speed check's finding), and the capped
-    branch decelerates from ``vmax``, not from the uncapped peak speed (F2MD's version
-    overstates the greatest distance there)."""
-    cur = max(cur, 0.0)
-    old = max(old, 0.0)
-    t1 = min(max((cur - old + dt * decel) / (accel + decel), 0.0), dt)
-    t2 = dt - t1
-    peak = accel * t1 + old
-    if peak > vmax:
-        n1 = min(max((vmax - old) / accel, 0.0), dt)
-        n2 = min(max((vmax - cur) / decel, 0.0), dt - n1)
-        top = max(old, min(vmax, peak))
-        greatest = (old * n1 + 0.5 * accel * n1 * n1 + top * n2 - 0.5 * decel * n2 * n2
-                    + top * (dt - n1 - n2))
-    else:
-        greatest = old * t1 + 0.5 * accel * t1 * t1 + peak * t2 - 0.5 * decel * t2 * t2
-    low = old - decel * t2
-    if low < 0.0:
-        n1 = cur / accel
-        n2 = old / decel
-        least = old * n2 - 0.5 * decel * n2 * n2 + 0.5 * accel * n1 * n1
-    else:
-        least = old * t2 - 0.5 * decel * t2 * t2 + low * t1 + 0.5 * accel * t1 * t1
-    return least, greatest
-
-
-def _corners(x: float, y: float, h: float, length: float, width: float
-             ) -> list[tuple[float, float]]:
-    """Corners of a vehicle's footprint (centre ``x, y`` east/north m, heading ``h``
-    radians clockwise from north, ``length`` along it), counter-clockwise."""
-    ax, ay = math.sin(h) * 0.5 * length, math.cos(h) * 0.5 * length  # forward
-    bx, by = math.cos(h) * 0.5 * width, -math.sin(h) * 0.5 * width  # right
-    return [(x + ax + bx, y + ay + by), (x + ax - bx, y + ay - by),
-            (x - ax - bx, y - ay - by), (x - ax + bx, y - ay + by)]
-
-
-def _area(poly: list[tuple[float, float]]) -> float:
-    s = 0.0
-    for i in range(len(poly)):
-        x1, y1 = poly[i - 1]
-        x2, y2 = poly[i]
-        s += x1 * y2 - x2 * y1
-    return abs(s) * 0.5
-
-
-def _clip(subject: list[tuple[float, float]], clip: list[tuple[float, float]]
-          ) -> list[tuple[float, float]]:
-    """Sutherland-Hodgman: ``subject`` clipped by the convex polygon ``clip``."""
-    out = subject
-    orient = 1.0 if _signed_area(clip) > 0 else -1.0
-    for i in range(len(clip)):
-        if not out:
-            break
-        (cx1, cy1), (cx2, cy2) = clip[i - 1], clip[i]
-        ex, ey = cx2 - cx1, cy2 - cy1
-        inp, out = out, []
-        for j in range(len(inp)):
-            px, py = inp[j - 1]
-            qx, qy = inp[j]
-            sp = orient * (ex * (py - cy1) - ey * (px - cx1))
-            sq = orient * (ex * (qy - cy1) - ey * (qx - cx1))
-            if sq >= 0.0:
-                if sp < 0.0:
-                    r = sp / (sp - sq)
-                    out.append((px + r * (qx - px), py + r * (qy - py)))
-                out.append((qx, qy))
-            elif sp >= 0.0:
-                r = sp / (sp - sq)
-                out.append((px + r * (qx - px), py + r * (qy - py)))
-    return out
-
-
-def _signed_area(poly: list[tuple[float, float]]) -> float:
-    s = 0.0
-    for i in range(len(poly)):
-        x1, y1 = poly[i - 1]
-        x2, y2 = poly[i]
-        s += x1 * y2 - x2 * y1
-    return 0.5 * s
-
-
-def _iou(a: tuple[float, float, float, float, float],
-         b: tuple[float, float, float, float, float]) -> float:
-    """Intersection over union of two footprints ``(x, y, heading rad, length, width)``:
-    F2MD ``MDMLib::RectRectFactor`` (intersection area / (area1 + area2 - intersection))."""
-    pa, pb = _corners(*a), _corners(*b)
-    inter = _area(_clip(pa, pb))
-    union = a[3] * a[4] + b[3] * b[4] - inter
-    return inter / union if union > 0.0 else 0.0
-
-
-def _positive(name: str, value: float) -> None:
-    if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-        raise ValueError(f"MbdConfig.{name} must be a finite number > 0, got {value!r}")
-
-
-@dataclass(frozen=True)
-class MbdConfig:
-    """Every threshold, with its source.  F2MD = IRT-SystemX/veins-f2md, commit 1d529e5,
-    ``src/veins/modules/application/f2md/``; "P.h" is its ``F2MDParameters.h``."""
-
-    # -- range -------------------------------------------------------------------------
-    #: Farthest plausible sender (m).  F2MD P.h MAX_PLAUSIBLE_RANGE = 420 (the old tree:
-    #: 417): the edge of reception of its simulated DSRC at Veins' transmit power.  Ours is
-    #: the RVE's radio (catc.channel: 20 dBm, -82 dBm sensitivity, free-space exponent 2,
-    #: Nakagami m 1.5), which still receives 1 % of BSMs at 1 km and 1e-5 at 1.5 km; real
-    #: DSRC / C-V2X line-of-sight ranges are reported up to ~1 km.  Without the distance
-    #: model the RVE delivers every vehicle (the default scenario's farthest is 750 m).
-    max_range_m: float = 1500.0
-    # -- vehicle limits (F2MDVeinsApp.cc: MAX_PLAUSIBLE_* = the SUMO vType's maxSpeed /
-    # accel / decel + 0.01, floors P.h MIN_MAX_SPEED 40, MIN_MAX_ACCEL 3, MIN_MAX_DECEL 4.5;
-    # SUMO's passenger car: 55.56 m/s, 2.6 and 4.5 m/s²).  A remote vehicle's type is not
-    # known here, so the limits are those of any car: --------------------------------------
-    #: m/s: 252 km/h, above production cars' speeds on unlimited roads (SUMO's 200 km/h
-    #: passenger limit is below them).
-    max_speed_mps: float = 70.0
-    #: m/s² (≈1 g, the tyre-road friction limit on dry asphalt; fast cars reach it).
-    max_accel_mps2: float = 10.0
-    #: m/s² (≈1 g; the default scenario's leader brakes at 7, above SUMO's decel 4.5, and
-    #: SUMO's passenger emergencyDecel is 9).
-    max_decel_mps2: float = 10.0
-    #: m/s added to the speed-change bound: two J2735 speed LSBs (0.02 m/s), so that the
-    #: encoding's rounding over a short interval is not read as acceleration.  F2MD: none.
-    speed_tolerance_mps: float = 0.04
-    # -- position consistency and position-speed ------------------------------------------
-    #: P.h MAX_TIME_DELTA = 3.1 s: position-speed is checked over at most this interval.
-    max_time_delta_s: float = 3.1
-    #: P.h MAX_MGT_RNG_UP = 2.1 m: tolerance above the greatest distance (position-speed);
-    #: also the tolerance of position-consistency (F2MD's legacy check has none: its
-    #: simulated positions are noise-free; real GNSS is not).
-    max_mgt_rng_up_m: float = 2.1
-    #: P.h MAX_MGT_RNG_DOWN = 6.2 m: tolerance below the least distance, plus F2MD's
-    #: speed-dependent term 0.3571 v - 0.01694 v² (LegacyChecks.cc; fitted to its urban
-    #: speeds, it turns negative above 37 m/s).  We keep at least ``max_mgt_rng_up_m``.
-    max_mgt_rng_down_m: float = 6.2
-    #: F2MD compares a BSM with the sender's previous one, 1 s earlier (its beacons are
-    #: 1 Hz).  At 10 Hz the tolerances above are larger than a 0.1 s interval can reveal,
-    #: so position-speed and heading use the newest earlier message at least this old.
-    anchor_s: float = 1.0
-    # -- heading ---------------------------------------------------------------------------
-    #: Largest angle between the heading and the direction of travel (deg).  F2MD P.h
-    #: MAX_HEADING_CHANGE = 90 (a heading pointing backwards).  Over ~1 s of travel the
-    #: largest honest angle in the real data here is 48 deg (OpenACC: raw GNSS jumping a
-    #: few metres sideways at 10 m/s; 99.99 % are below 23); 90 would pass a heading at
-    #: right angles to the path, so: 60.
-    max_heading_change_deg: float = 60.0
-    #: P.h POS_HEADING_TIME = 1.1 s: heading is compared over at most this interval.
-    pos_heading_time_s: float = 1.1
-    #: Below this speed (m/s) or displacement (m) heading is not checked: F2MD's 1 and 1
-    #: (PositionHeadingConsistancyCheck).
-    heading_min_speed_mps: float = 1.0
-    heading_min_distance_m: float = 1.0
-    # -- sudden appearance -----------------------------------------------------------------
-    #: P.h MAX_SA_RANGE = 210 m (half its 420 m range): a first message closer than this.
-    sa_range_m: float = 210.0
-    #: Inside this range (m) a sudden appearance is strong evidence (quarantine at once):
-    #: about 2 s of travel at highway speed, where a ghost can trigger a forward collision
-    #: warning (catc.apps.fcw).  Ours, not F2MD's.
-    sa_safety_range_m: float = 50.0
-    #: P.h MAX_SA_TIME = 2.1 s: no sudden appearance in the detector's first seconds (every
-    #: sender is new then) ...
-    sa_warmup_s: float = 2.1
-    #: ... nor before this many typical message intervals have passed (so that at 1 Hz and
-    #: high loss a vehicle in range has been heard: 0.5^10 = 1e-3).  Ours.
-    sa_warmup_intervals: float = 10.0
-    #: A new id that continues the path of an id last heard up to this long ago (s) is a
-    #: pseudonym change, not an appearance (J2735 TemporaryIDs change with the pseudonym
-    #: certificate, possibly after a silent period of a few seconds).  Ours.
-    sa_link_time_s: float = 5.0
-    #: ... and last heard at least this long (s) before the new id's first message: half
-    #: a 10 Hz interval (an id still sending alongside is a neighbour).  Ours.
-    sa_link_min_gap_s: float = 0.05
-    #: ... "continues": within ``sa_link_accel_mps2 dt² / 2 + max_mgt_rng_up_m`` of where
-    #: the old id's last speed and heading would have taken it (0.3 g of unannounced
-    #: acceleration or braking during the silence).  Ours.
-    sa_link_accel_mps2: float = 3.0
-    # -- beacon frequency and timing ----------------------------------------------------
-    #: Shortest plausible interval (s) between two BSMs of a sender: F2MD P.h
-    #: MAX_BEACON_FREQUENCY = 0.9 s for its 1 s beacons, i.e. 0.9 of the nominal interval;
-    #: SAE J2945/1's nominal BSM interval is 100 ms, so 0.09 s.  Measured on secMark.
-    min_interval_s: float = 0.09
-    #: A message up to this much older (s, secMark) than the sender's last one is a late
-    #: (reordered) frame, skipped without a finding; older is a replay.  Ours.
-    reorder_window_s: float = 0.5
-    #: A sender's secMark may run ahead of the receive clock by at most this much (s) over
-    #: its lowest latency so far: more is a forged or replayed timestamp.  Ours.
-    max_clock_skew_s: float = 1.0
-    # -- intersection ----------------------------------------------------------------------
-    #: F2MD IntersectionCheck: footprints overlap when intersection over union, times
-    #: (MAX_DELTA_INTER - dt) / MAX_DELTA_INTER, exceeds 0.5.
-    intersection_threshold: float = 0.5
-    #: P.h MAX_DELTA_INTER = 2.0 s (the old tree: 0.4).  The other vehicle's last position
-    #: is also moved forward by its speed over dt (ours; F2MD compares it where it was).
-    max_delta_inter_s: float = 2.0
-    #: F2MD's IntersectionCheck with the host uses dt = 0.11 s.
-    host_delta_s: float = 0.11
-    #: Host footprint (m): SUMO's passenger car, as every vehicle of the scenarios.
-    host_length_m: float = 5.0
-    host_width_m: float = 1.8
-    # -- Sybil (ours: F2MD has no legacy Sybil check; its grid Sybil attack puts ghosts
-    # SybilDistanceX = 5 m and SybilDistanceY = 2 m from the sender, P.h) ---------------------
-    #: Two ids moving together, closer than distinct vehicles could: same heading within
-    #: ``sybil_heading_deg`` and speed within ``sybil_speed_mps``, both above
-    #: ``sybil_min_speed_mps`` (in a queue close and slow is normal) ...
-    sybil_min_speed_mps: float = 5.0
-    sybil_heading_deg: float = 10.0
-    sybil_speed_mps: float = 1.0
-    #: ... side by side closer than half their widths plus this (m; adjacent lanes are
-    #: 3 m or more apart) ...
-    sybil_lateral_clearance_m: float = 0.5
-    #: ... and a bumper-to-bumper gap below ``sybil_min_gap_m + sybil_headway_s * speed``
-    #: (the shortest honest gap in the real data here is about a 0.33 s time gap, OpenACC
-    #: by hand at 16 m/s: 4.9 m, above the 2.6 m this gives there) ...
-    sybil_min_gap_m: float = 1.0
-    sybil_headway_s: float = 0.1
-    #: ... in this many consecutive messages of the younger id.
-    sybil_messages: int = 5
-    # -- quarantine (ours) -----------------------------------------------------------------
-    #: A sender is quarantined when ``quarantine_k`` of its messages fail within
-    #: ``quarantine_window_s``, or at once on a strong finding (sudden appearance inside
-    #: the safety range, intersection, Sybil); a single GNSS glitch is one failed message.
-    quarantine_k: int = 3
-    quarantine_window_s: float = 2.0
-    #: How long (s) from the last detection a quarantine lasts; renewed by new detections.
-    quarantine_s: float = 10.0
-    #: A sender quarantined on a strong finding (a fabricated vehicle) stays quarantined
-    #: while it keeps transmitting: each of its messages renews the quarantine.
-    sticky_strong: bool = True
-    #: Size (m) of the grid cells that find neighbours for intersection and Sybil.
-    grid_cell_m: float = 50.0
-
-    def __post_init__(self) -> None:
-        for f in fields(self):
-            v = getattr(self, f.name)
-            if f.name == "sticky_strong":
-                continue
-            _positive(f.name, v)
-        if not self.intersection_threshold < 1.0:
-            raise ValueError("MbdConfig.intersection_threshold must be below 1 "
-                             f"(an overlap ratio), got {self.intersection_threshold}")
-        if not isinstance(self.quarantine_k, int) or not isinstance(self.sybil_messages, int):
-            raise ValueError("MbdConfig.quarantine_k and sybil_messages are counts (int)")
 
 
 @dataclass(frozen=True)
@@ -441,7 +119,7 @@ class MisbehaviorDetector:
     """Plausibility checks on verified BSMs with bounded per-sender state (module
     docstring; every threshold in :class:`MbdConfig`)."""
 
-    def __init__(self, config: MbdConfig = MbdConfig(), max_senders: int = 4096) -> None:
+    def __init__(self, config: MbdConfig = _DEFAULT, max_senders: int = 4096) -> None:
         if not isinstance(max_senders, int) or max_senders < 1:
             raise ValueError(f"max_senders must be a positive int, got {max_senders!r}")
         self.config = config
@@ -520,7 +198,7 @@ class MisbehaviorDetector:
 
     def _cell(self, lat: float, lon: float) -> tuple[int, int]:
         if not self._cell_lat:
-            kx, ky = _scale(lat)
+            kx, ky = scale(lat)
             self._cell_lat = self.config.grid_cell_m / ky
             self._cell_lon = self.config.grid_cell_m / max(kx, 1.0)
         return int(lat // self._cell_lat), int(lon // self._cell_lon)
@@ -594,7 +272,7 @@ class MisbehaviorDetector:
         if length is None or width is None or length <= 0.0 or width <= 0.0:
             length = width = None
         sm = _sec_mark(bsm.sec_mark)
-        kx, ky = _scale(lat)
+        kx, ky = scale(lat)
         found: list[Detection] = []
         strong = False
 
@@ -605,7 +283,7 @@ class MisbehaviorDetector:
         hlat, hlon = _num(host_lat), _num(host_lon)
         host_d = None
         if hlat is not None and hlon is not None and -90.0 <= hlat <= 90.0:
-            hx, hy = -_dlon(lon, hlon) * kx, (hlat - lat) * ky  # host from the sender
+            hx, hy = -dlon(lon, hlon) * kx, (hlat - lat) * ky  # host from the sender
             host_d = math.hypot(hx, hy)
             if host_d >= c.max_range_m:  # RangePlausibilityCheck
                 add("range", _ratio(host_d, c.max_range_m),
@@ -615,9 +293,9 @@ class MisbehaviorDetector:
                                                                         c.host_width_m))
                 if host_d < reach:
                     hh = _num(host_heading)
-                    h = heading * _RAD
-                    inter = _iou((0.0, 0.0, h, length, width),
-                                 (hx, hy, h if hh is None else hh * _RAD, c.host_length_m,
+                    h = heading * RAD
+                    inter = iou((0.0, 0.0, h, length, width),
+                                 (hx, hy, h if hh is None else hh * RAD, c.host_length_m,
                                   c.host_width_m))
                     inter *= (c.max_delta_inter_s - c.host_delta_s) / c.max_delta_inter_s
                     if inter > c.intersection_threshold:
@@ -678,7 +356,7 @@ class MisbehaviorDetector:
             if late:
                 return self._finish(st, tid, t, found, strong, None, 0, False)
             if timing_ok and dt > 0.0:
-                dx, dy = _dlon(lon, acc.lon) * kx, (lat - acc.lat) * ky
+                dx, dy = dlon(lon, acc.lon) * kx, (lat - acc.lat) * ky
                 dist = math.hypot(dx, dy)
                 # -- PositionConsistancyCheck ----------------------------------------------
                 limit = c.max_speed_mps * dt + c.max_mgt_rng_up_m
@@ -701,7 +379,7 @@ class MisbehaviorDetector:
                 ref = hist[anchor_i]
                 dtr = ts - ref.ts
                 if dtr > 0.0:
-                    rx, ry = _dlon(lon, ref.lon) * kx, (lat - ref.lat) * ky
+                    rx, ry = dlon(lon, ref.lon) * kx, (lat - ref.lat) * ky
                     rdist = math.hypot(rx, ry)
                     if 0.0 < dtr < c.max_time_delta_s and speed is not None \
                             and ref.speed is not None:
@@ -747,7 +425,7 @@ class MisbehaviorDetector:
         then starts a new baseline: a GNSS step is reported once, a lasting lie again
         whenever it outgrows the tolerances)."""
         c = self.config
-        least, greatest = _max_min_dist(speed, old, dt, c.max_accel_mps2, c.max_decel_mps2,
+        least, greatest = max_min_dist(speed, old, dt, c.max_accel_mps2, c.max_decel_mps2,
                                         c.max_speed_mps)
         vmin = min(speed, old)
         addon = c.max_mgt_rng_down_m + 0.3571 * vmin - 0.01694 * vmin * vmin
@@ -794,9 +472,9 @@ class MisbehaviorDetector:
             # this very message's time is a neighbour, not our previous pseudonym
             if not c.sa_link_min_gap_s <= dt <= c.sa_link_time_s:
                 continue
-            ox, oy = _dlon(m.lon, lon) * kx, (m.lat - lat) * ky
+            ox, oy = dlon(m.lon, lon) * kx, (m.lat - lat) * ky
             if m.speed is not None and m.heading is not None:
-                h = m.heading * _RAD
+                h = m.heading * RAD
                 ox += m.speed * dt * math.sin(h)
                 oy += m.speed * dt * math.cos(h)
             if math.hypot(ox, oy) <= 0.5 * c.sa_link_accel_mps2 * dt * dt + c.max_mgt_rng_up_m:
@@ -811,7 +489,7 @@ class MisbehaviorDetector:
         older one is still heard (an id that fell silent before this one appeared is a
         pseudonym change, not a twin)."""
         c = self.config
-        h = heading * _RAD
+        h = heading * RAD
         sin_h, cos_h = math.sin(h), math.cos(h)
         me = (0.0, 0.0, h, length, width)
         diag = math.hypot(length, width)
@@ -839,7 +517,7 @@ class MisbehaviorDetector:
             m = o.acc
             if m.heading is None or m.length is None:
                 continue
-            ox, oy = _dlon(m.lon, lon) * kx, (m.lat - lat) * ky
+            ox, oy = dlon(m.lon, lon) * kx, (m.lat - lat) * ky
             ov = m.speed or 0.0
             if ox * ox + oy * oy > (reach + 0.5 * (m.length + m.width)
                                     + ov * (abs(t - m.t) + c.max_clock_skew_s)) ** 2:
@@ -847,14 +525,14 @@ class MisbehaviorDetector:
             dt = self._pair_dt(o, t, sm)
             if not -c.max_delta_inter_s < dt < c.max_delta_inter_s:
                 continue
-            oh = m.heading * _RAD
+            oh = m.heading * RAD
             if m.speed is not None:  # where the other is now
                 ox += m.speed * dt * math.sin(oh)
                 oy += m.speed * dt * math.cos(oh)
             d = math.hypot(ox, oy)
             # -- IntersectionCheck ---------------------------------------------------------
             if d < 0.5 * (diag + math.hypot(m.length, m.width)):
-                inter = _iou(me, (ox, oy, oh, m.length, m.width))
+                inter = iou(me, (ox, oy, oh, m.length, m.width))
                 inter *= (c.max_delta_inter_s - abs(dt)) / c.max_delta_inter_s
                 if inter > c.intersection_threshold:
                     add("intersection", _ratio(inter, c.intersection_threshold),

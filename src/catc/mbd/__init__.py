@@ -12,8 +12,9 @@ Misbehavior Detection in Vehicular Networks", IEEE TVT 69(6), 2020), read from i
 (``src/veins/modules/application/f2md/``, commit 1d529e5), ``MDMLib.cc`` there for the
 kinematic envelope and the rectangle overlap, and ``F2MDVeinsApp.cc`` for the vehicle limits;
 the older ``josephkamel/F2MD`` tree (``f2mdVeinsApp/``) has the same checks with ``#define``
-constants.  Each threshold below cites its F2MD constant; where it had to change for a
-10 Hz BSM on a real radio, the comment says why.  F2MD's names map to ours as:
+constants.  Each threshold in :class:`MbdConfig` cites its F2MD constant; where it had to
+change for a 10 Hz BSM on a real radio, the comment says why.  F2MD's names map to ours
+as:
 
 ========================================  ============================================
 F2MD (``LegacyChecks.cc``)                 ``Detection.check``
@@ -43,6 +44,16 @@ message here).  Headings are degrees clockwise from north.  Times: the sender's 
 is its secMark (ms within the UTC minute, wrapped at 60000); ``t`` is the caller's
 receive clock.  Pure: no I/O, no clock of its own.  docs/mbd.md has each check's formula,
 threshold and source, the quarantine rule and the measured cost.
+
+The modules, one job each:
+
+==============  ===========================================================================
+``detector``    :class:`MisbehaviorDetector`; ``observe`` runs the checks on each message
+``quarantine``  the quarantine rule
+``state``       each sender's accepted messages (a bounded LRU) and the neighbour grid
+``config``      :class:`MbdConfig`: every threshold, with its F2MD source
+``geometry``    the local metric scale, the kinematic envelope and the footprint overlap
+==============  ===========================================================================
 """
 
 from catc.mbd.config import MbdConfig

@@ -5,12 +5,14 @@ from __future__ import annotations
 
 import math
 import operator
-from collections import Counter, OrderedDict
+from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any
 
 from catc.mbd.config import MbdConfig
 from catc.mbd.geometry import RAD, dlon, iou, max_min_dist, scale
+from catc.mbd.quarantine import Quarantine
+from catc.mbd.state import Msg, Sender, Senders, wrapped_dt
 
 __all__ = ["CHECKS", "Detection", "MisbehaviorDetector"]
 
@@ -50,12 +52,6 @@ def _sec_mark(x: Any) -> int | None:
     return v if 0 <= v < 61_000 else None
 
 
-def _wrapped_dt(sm: int, sm0: int, dt_rx: float) -> float:
-    """Seconds from secMark ``sm0`` to ``sm``: the reading (mod 60 s) nearest ``dt_rx``."""
-    d = ((sm - sm0) % 60_000) / 1000.0
-    return d + 60.0 * round((dt_rx - d) / 60.0)
-
-
 def _ratio(num: float, den: float) -> float:
     """``num / den`` for a score (>= 1 when failed), finite."""
     if den <= num / _SCORE_CAP:
@@ -83,38 +79,6 @@ class Detection:
     other: int | None = None
 
 
-class _Msg:
-    """An accepted message, as the checks need it."""
-
-    __slots__ = ("heading", "lat", "length", "lon", "sm", "speed", "t", "ts", "width")
-
-    def __init__(self, ts: float, t: float, sm: int | None, lat: float, lon: float,
-                 speed: float | None, heading: float | None, length: float | None,
-                 width: float | None) -> None:
-        self.ts, self.t, self.sm = ts, t, sm
-        self.lat, self.lon, self.speed, self.heading = lat, lon, speed, heading
-        self.length, self.width = length, width
-
-
-class _Sender:
-    """What the detector keeps of one TemporaryID."""
-
-    __slots__ = ("acc", "cell", "first_t", "heard_t", "hist", "min_off", "strikes", "strong",
-                 "sybil", "tid")
-
-    def __init__(self, tid: int, t: float) -> None:
-        self.tid = tid
-        self.first_t = t  # first heard (receive clock)
-        self.heard_t = t  # last heard, accepted or not
-        self.acc: _Msg | None = None  # the last accepted message
-        self.hist: list[_Msg] = []  # accepted messages back to the anchor
-        self.min_off = math.inf  # lowest (receive time - sender time) so far
-        self.strikes: list[float] = []  # receive times of failed messages in the window
-        self.strong = False  # quarantined on a strong finding
-        self.sybil: dict[int, int] = {}  # other id -> consecutive co-moving messages
-        self.cell: tuple[int, int] | None = None
-
-
 class MisbehaviorDetector:
     """Plausibility checks on verified BSMs with bounded per-sender state (module
     docstring; every threshold in :class:`MbdConfig`)."""
@@ -126,12 +90,8 @@ class MisbehaviorDetector:
         self.max_senders = max_senders
         #: Detections by check name, and ``quarantines`` (senders put in quarantine).
         self.counters: Counter = Counter()
-        self._senders: OrderedDict[int, _Sender] = OrderedDict()
-        self._quarantine: OrderedDict[int, float] = OrderedDict()  # id -> until (s)
-        self._grid: dict[tuple[int, int], set[int]] = {}
-        self._cell_lat = self._cell_lon = 0.0  # grid cell size in degrees, set on first use
-        self._t0: float | None = None  # first message seen
-        self._interval = 0.0  # running mean of accepted message intervals (s)
+        self._senders = Senders(config, max_senders)
+        self._quarantine = Quarantine(config, max_senders)
 
     def __len__(self) -> int:
         """Senders with state (at most ``max_senders``)."""
@@ -139,7 +99,7 @@ class MisbehaviorDetector:
 
     def grid_entries(self) -> int:
         """Ids in the neighbour grid (bounded like the senders)."""
-        return sum(len(s) for s in self._grid.values())
+        return self._senders.grid_entries()
 
     # -- quarantine --------------------------------------------------------------------
 
@@ -150,95 +110,11 @@ class MisbehaviorDetector:
         new detection (and, after a strong finding, by every message): quarantine after
         ``quarantine_k`` failed messages within ``quarantine_window_s``, or at once on a
         sudden appearance inside the safety range, an intersection or a Sybil finding."""
-        until = self._quarantine.get(temp_id)
-        return until is not None and t < until
+        return self._quarantine.quarantined(temp_id, t)
 
-    def _punish(self, st: _Sender, t: float, found: list[Detection], strong: bool) -> None:
-        c = self.config
-        until = self._quarantine.get(st.tid)
-        active = until is not None and t < until
-        strikes = [s for s in st.strikes if t - s < c.quarantine_window_s]
-        strikes.append(t)
-        st.strikes = strikes[-c.quarantine_k:]
-        if strong or len(strikes) >= c.quarantine_k or active:
-            if not active:
-                self.counters["quarantines"] += 1
-            st.strong = st.strong or strong
-            self._set_quarantine(st.tid, t + c.quarantine_s)
-
-    def _set_quarantine(self, tid: int, until: float) -> None:
-        q = self._quarantine
-        q[tid] = until
-        q.move_to_end(tid)
-        while len(q) > self.max_senders:
-            q.popitem(last=False)
-
-    # -- state -------------------------------------------------------------------------
-
-    def _sender(self, tid: int, t: float) -> _Sender:
-        senders = self._senders
-        st = senders.get(tid)
-        if st is not None:
-            senders.move_to_end(tid)
-            return st
-        st = senders[tid] = _Sender(tid, t)
-        while len(senders) > self.max_senders:
-            _, old = senders.popitem(last=False)
-            self._ungrid(old)
-        return st
-
-    def _ungrid(self, st: _Sender) -> None:
-        if st.cell is not None:
-            cell = self._grid.get(st.cell)
-            if cell is not None:
-                cell.discard(st.tid)
-                if not cell:
-                    del self._grid[st.cell]
-            st.cell = None
-
-    def _cell(self, lat: float, lon: float) -> tuple[int, int]:
-        if not self._cell_lat:
-            kx, ky = scale(lat)
-            self._cell_lat = self.config.grid_cell_m / ky
-            self._cell_lon = self.config.grid_cell_m / max(kx, 1.0)
-        return int(lat // self._cell_lat), int(lon // self._cell_lon)
-
-    def _neighbours(self, lat: float, lon: float, reach: int = 1):
-        i, j = self._cell(lat, lon)
-        grid = self._grid
-        senders = self._senders
-        for di in range(-reach, reach + 1):
-            for dj in range(-reach, reach + 1):
-                cell = grid.get((i + di, j + dj))
-                if cell:
-                    for tid in cell:
-                        o = senders.get(tid)
-                        if o is not None and o.acc is not None:
-                            yield o
-
-    def _accept(self, st: _Sender, m: _Msg, anchor_i: int, reset: bool) -> None:
-        if st.acc is not None and m.sm is not None and st.acc.sm is not None:
-            dt = m.ts - st.acc.ts
-            if 0.0 < dt <= self.config.max_time_delta_s:
-                self._interval = dt if not self._interval else \
-                    0.98 * self._interval + 0.02 * dt
-        st.acc = m
-        if reset:
-            st.hist = [m]
-        else:
-            if anchor_i:
-                del st.hist[:anchor_i]
-            st.hist.append(m)
-            if len(st.hist) > 64:  # a flood of messages inside anchor_s
-                del st.hist[:-64]
-        off = m.t - m.ts
-        if off < st.min_off:
-            st.min_off = off
-        cell = self._cell(m.lat, m.lon)
-        if cell != st.cell:
-            self._ungrid(st)
-            self._grid.setdefault(cell, set()).add(st.tid)
-            st.cell = cell
+    def _punish(self, st: Sender, t: float, found: list[Detection], strong: bool) -> None:
+        if self._quarantine.punish(st, t, strong):
+            self.counters["quarantines"] += 1
 
     # -- the checks ----------------------------------------------------------------------
 
@@ -260,8 +136,9 @@ class MisbehaviorDetector:
             tid = int(bsm.temp_id)
         except (TypeError, ValueError):
             return []
-        if self._t0 is None:
-            self._t0 = t
+        senders = self._senders
+        if senders.t0 is None:
+            senders.t0 = t
         speed = _num(bsm.speed)
         if speed is not None and speed < 0.0:
             speed = None
@@ -308,7 +185,7 @@ class MisbehaviorDetector:
             add("speed-consistency", _ratio(speed, c.max_speed_mps),
                 {"speed_mps": speed, "limit_mps": c.max_speed_mps})
 
-        st = self._sender(tid, t)
+        st = senders.get(tid, t)
         acc = st.acc
         ts = t  # the sender's clock, continued from its last accepted message
         late = False
@@ -317,8 +194,8 @@ class MisbehaviorDetector:
         reset = False
         if acc is None:
             # -- SuddenAppearenceCheck: a first message close to the host ------------------
-            warmup = max(c.sa_warmup_s, c.sa_warmup_intervals * self._interval)
-            if host_d is not None and host_d < c.sa_range_m and t - self._t0 >= warmup \
+            warmup = max(c.sa_warmup_s, c.sa_warmup_intervals * senders.interval)
+            if host_d is not None and host_d < c.sa_range_m and t - senders.t0 >= warmup \
                     and not self._continues(tid, t, sm, lat, lon, kx, ky, speed):
                 inside = host_d < c.sa_safety_range_m
                 add("sudden-appearance", _ratio(c.sa_range_m, host_d),
@@ -330,7 +207,7 @@ class MisbehaviorDetector:
             if not abs(dt_rx) < 1e9:  # a receive clock that jumped by decades
                 return self._finish(st, tid, t, found, strong, None, 0, False)
             if sm is not None and acc.sm is not None:
-                dt = _wrapped_dt(sm, acc.sm, dt_rx)
+                dt = wrapped_dt(sm, acc.sm, dt_rx)
                 ts = acc.ts + dt
                 ahead = st.min_off - (t - ts)
                 if ahead > c.max_clock_skew_s:
@@ -401,22 +278,20 @@ class MisbehaviorDetector:
                                  width) or strong
         msg = None
         if not any(d.check in _TRACK_CHECKS for d in found):
-            msg = _Msg(ts, t, sm, lat, lon, speed, heading, length, width)
+            msg = Msg(ts, t, sm, lat, lon, speed, heading, length, width)
         return self._finish(st, tid, t, found, strong, msg, anchor_i, reset)
 
-    def _finish(self, st: _Sender, tid: int, t: float, found: list[Detection], strong: bool,
-                msg: _Msg | None, anchor_i: int, reset: bool) -> list[Detection]:
+    def _finish(self, st: Sender, tid: int, t: float, found: list[Detection], strong: bool,
+                msg: Msg | None, anchor_i: int, reset: bool) -> list[Detection]:
         st.heard_t = t
         if msg is not None:
-            self._accept(st, msg, anchor_i, reset)
+            self._senders.accept(st, msg, anchor_i, reset)
         if found:
             for d in found:
                 self.counters[d.check] += 1
             self._punish(st, t, found, strong)
-        elif st.strong and self.config.sticky_strong:
-            until = self._quarantine.get(tid)
-            if until is not None and t < until:
-                self._set_quarantine(tid, t + self.config.quarantine_s)
+        elif st.strong:
+            self._quarantine.passed(st, t)
         return found
 
     def _position_speed(self, add, dist: float, dt: float, speed: float, old: float) -> bool:
@@ -443,19 +318,6 @@ class MisbehaviorDetector:
             return True
         return False
 
-    def _pair_dt(self, o: _Sender, t: float, sm: int | None) -> float:
-        """Time (s) from the other's last accepted message to this one: on secMark (one
-        UTC minute for all senders) when it agrees with the receive clock, else that."""
-        m = o.acc
-        dt_rx = t - m.t
-        if not abs(dt_rx) < 1e9:
-            return math.inf
-        if sm is not None and m.sm is not None:
-            d = _wrapped_dt(sm, m.sm, dt_rx)
-            if abs(d - dt_rx) <= self.config.max_clock_skew_s:
-                return d
-        return dt_rx
-
     def _continues(self, tid: int, t: float, sm: int | None, lat: float, lon: float,
                    kx: float, ky: float, speed: float | None) -> bool:
         """Whether a new id continues the path of a sender heard within ``sa_link_time_s``
@@ -463,11 +325,13 @@ class MisbehaviorDetector:
         c = self.config
         v = (c.max_speed_mps if speed is None else min(speed, c.max_speed_mps)) + 5.0
         reach = min(8, 1 + int(v * c.sa_link_time_s // c.grid_cell_m))
-        for o in self._neighbours(lat, lon, reach):
-            if o.tid == tid:
+        get = self._senders.by_id.get
+        for otid in self._senders.ids_near(lat, lon, reach):
+            o = get(otid)
+            if o is None or o.acc is None or o.tid == tid:
                 continue
             m = o.acc
-            dt = self._pair_dt(o, t, sm)
+            dt = self._senders.pair_dt(o, t, sm)
             # a vehicle does not send under two ids in the same interval: an id heard with
             # this very message's time is a neighbour, not our previous pseudonym
             if not c.sa_link_min_gap_s <= dt <= c.sa_link_time_s:
@@ -481,7 +345,7 @@ class MisbehaviorDetector:
                 return True
         return False
 
-    def _pairs(self, st: _Sender, add, t: float, sm: int | None, lat: float, lon: float,
+    def _pairs(self, st: Sender, add, t: float, sm: int | None, lat: float, lon: float,
                kx: float, ky: float, speed: float | None, heading: float, length: float,
                width: float) -> bool:
         """MultipleIntersectionCheck and the Sybil check against the neighbours; True on a
@@ -501,16 +365,9 @@ class MisbehaviorDetector:
         reach = 0.5 * (length + width) + c.sybil_lateral_clearance_m + c.sybil_min_gap_m \
             + c.sybil_headway_s * (speed or 0.0)
         first_t = st.first_t
-        i, j = self._cell(lat, lon)
-        grid, senders = self._grid, self._senders
-        others = []
-        for di in (-1, 0, 1):
-            for dj in (-1, 0, 1):
-                cell = grid.get((i + di, j + dj))
-                if cell:
-                    others.extend(cell)
-        for otid in others:
-            o = senders.get(otid)
+        get = self._senders.by_id.get
+        for otid in self._senders.ids_near(lat, lon):
+            o = get(otid)
             if o is None or o is st or o.acc is None or o.first_t > first_t \
                     or o.heard_t < first_t:
                 continue
@@ -522,7 +379,7 @@ class MisbehaviorDetector:
             if ox * ox + oy * oy > (reach + 0.5 * (m.length + m.width)
                                     + ov * (abs(t - m.t) + c.max_clock_skew_s)) ** 2:
                 continue  # too far apart even after the other's travel since
-            dt = self._pair_dt(o, t, sm)
+            dt = self._senders.pair_dt(o, t, sm)
             if not -c.max_delta_inter_s < dt < c.max_delta_inter_s:
                 continue
             oh = m.heading * RAD

@@ -183,6 +183,17 @@ def test_defaults_are_f2md_s_or_the_documented_adaptations():
         MisbehaviorDetector(max_senders=0)
 
 
+def test_every_check_is_one_function_in_the_table():
+    """catc.mbd.checks.TABLE lists each check function once, under a Detection.check name;
+    the pair checks (run per neighbour) come after the message checks."""
+    from catc.mbd.checks import TABLE
+
+    assert {k.name for k in TABLE} == set(CHECKS)
+    assert len({k.run for k in TABLE}) == len(TABLE)
+    pair = [k.pair for k in TABLE]
+    assert pair == sorted(pair) and any(pair)
+
+
 # --- false positives: real trajectories raise nothing -----------------------------------
 
 

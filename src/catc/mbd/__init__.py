@@ -48,7 +48,8 @@ threshold and source, the quarantine rule and the measured cost.
 The modules, one job each:
 
 ==============  ===========================================================================
-``detector``    :class:`MisbehaviorDetector`; ``observe`` runs the checks on each message
+``checks``      one function per check, listed in ``checks.TABLE``: where a check is added
+``detector``    :class:`MisbehaviorDetector`; ``observe`` runs the table on each message
 ``quarantine``  the quarantine rule
 ``state``       each sender's accepted messages (a bounded LRU) and the neighbour grid
 ``config``      :class:`MbdConfig`: every threshold, with its F2MD source
@@ -56,8 +57,9 @@ The modules, one job each:
 ==============  ===========================================================================
 """
 
+from catc.mbd.checks import CHECKS, Detection
 from catc.mbd.config import MbdConfig
-from catc.mbd.detector import CHECKS, Detection, MisbehaviorDetector
+from catc.mbd.detector import MisbehaviorDetector
 from catc.mbd.geometry import local_offset_m
 
 __all__ = ["CHECKS", "Detection", "MbdConfig", "MisbehaviorDetector", "local_offset_m"]

@@ -2,22 +2,32 @@
 
 A sender is quarantined when ``quarantine_k`` of its messages fail within
 ``quarantine_window_s`` (a message counts once, however many checks it fails: a single
-GNSS glitch is one failed message), or at once on a strong finding (a sudden appearance
-inside the host's safety range, an intersection, a Sybil).  The quarantine lasts
-``quarantine_s`` from the last detection and is renewed by every new one; after a strong
-finding, with ``sticky_strong``, by every message of the sender too (a fabricated vehicle
-does not become real by behaving consistently afterwards).  The rule is ours, not F2MD's;
-docs/mbd.md explains it.
+GNSS glitch is one failed message), or at once on a strong finding (:func:`is_strong`: a
+sudden appearance inside the host's safety range, an intersection, a Sybil).  The
+quarantine lasts ``quarantine_s`` from the last detection and is renewed by every new one;
+after a strong finding, with ``sticky_strong``, by every message of the sender too (a
+fabricated vehicle does not become real by behaving consistently afterwards).  The rule is
+ours, not F2MD's; docs/mbd.md explains it.
 """
 
 from __future__ import annotations
 
 from collections import OrderedDict
 
+from catc.mbd.checks import Detection
 from catc.mbd.config import MbdConfig
 from catc.mbd.state import Sender
 
-__all__ = ["Quarantine"]
+__all__ = ["Quarantine", "is_strong"]
+
+
+def is_strong(d: Detection, c: MbdConfig) -> bool:
+    """Whether ``d`` quarantines its sender at once: an intersection, a Sybil, or a sudden
+    appearance inside the host's safety range (where a ghost can trigger a forward
+    collision warning)."""
+    check = d.check
+    return check == "intersection" or check == "sybil" or (
+        check == "sudden-appearance" and d.evidence["distance_m"] < c.sa_safety_range_m)
 
 
 class Quarantine:

@@ -90,8 +90,11 @@ class MisbehaviorDetector:
 
         The message checks of :data:`~catc.mbd.checks.TABLE` run in its order, then, when
         the message follows its sender's track and has a heading and a size, its pair
-        checks against each neighbour (:func:`~catc.mbd.checks.pairs`) in turn; the
-        failures update the sender's state and quarantine (:meth:`_update`)."""
+        checks against each neighbour (:func:`~catc.mbd.checks.pairs`) in turn.  Then the
+        verdicts are combined: the message becomes its sender's reference unless it
+        contradicts its own track (:data:`~catc.mbd.checks.TRACK_CHECKS`; a new baseline
+        on :data:`~catc.mbd.checks.BASELINE_CHECKS`), and the quarantine rule applies
+        (:mod:`catc.mbd.quarantine`)."""
         o = self._read(bsm, t, host_lat, host_lon, host_heading)
         if o is None:
             return []
@@ -109,7 +112,21 @@ class MisbehaviorDetector:
                     if r is not None:
                         found.append(Detection(name, tid, t, r[0], r[1], p.tid))
             o.st.sybil = o.sybil
-        self._update(o, found)
+
+        st = o.st
+        st.heard_t = t
+        if o.anchor_i is not None and not (found and any(d.check in TRACK_CHECKS
+                                                         for d in found)):
+            reset = bool(found) and any(d.check in BASELINE_CHECKS for d in found)
+            self._senders.accept(st, Msg(o.ts, t, o.sm, o.lat, o.lon, o.speed, o.heading,
+                                         o.length, o.width), o.anchor_i, reset)
+        if found:
+            for d in found:
+                self.counters[d.check] += 1
+            if self._quarantine.punish(st, t, any(is_strong(d, c) for d in found)):
+                self.counters["quarantines"] += 1
+        elif st.strong:  # a clean message renews only a strong finding's quarantine
+            self._quarantine.passed(st, t)
         return found
 
     def _read(self, bsm, t: float, host_lat: float | None, host_lon: float | None,
@@ -235,23 +252,3 @@ class MisbehaviorDetector:
             o.rx = rx = (rx if -180.0 <= rx <= 180.0 else dlon(o.lon, ref.lon)) * o.kx
             o.ry = ry = (o.lat - ref.lat) * o.ky
             o.rdist = math.hypot(rx, ry)
-
-    def _update(self, o: Observation, found: list[Detection]) -> None:
-        """The verdicts into the sender's state: the message becomes its reference
-        unless it contradicts its own track (:data:`~catc.mbd.checks.TRACK_CHECKS`; a new
-        baseline on :data:`~catc.mbd.checks.BASELINE_CHECKS`), and the quarantine rule."""
-        st, t = o.st, o.t
-        st.heard_t = t
-        if o.anchor_i is not None and not (found and any(d.check in TRACK_CHECKS
-                                                         for d in found)):
-            reset = bool(found) and any(d.check in BASELINE_CHECKS for d in found)
-            self._senders.accept(st, Msg(o.ts, t, o.sm, o.lat, o.lon, o.speed, o.heading,
-                                         o.length, o.width), o.anchor_i, reset)
-        if found:
-            for d in found:
-                self.counters[d.check] += 1
-            c = self.config
-            if self._quarantine.punish(st, t, any(is_strong(d, c) for d in found)):
-                self.counters["quarantines"] += 1
-        elif st.strong:  # a clean message renews only a strong finding's quarantine
-            self._quarantine.passed(st, t)

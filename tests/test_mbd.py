@@ -21,6 +21,7 @@ from catc import geo
 from catc.bsm import BSM, TransmissionState
 from catc.channel import ChannelConfig
 from catc.mbd import CHECKS, Detection, MbdConfig, MisbehaviorDetector, local_offset_m
+from catc.mbd.geometry import iou, max_min_dist, scale
 from catc.replay import plan, temp_id
 from hil.datasets import load_table
 from tests.conftest import shared_path
@@ -130,10 +131,8 @@ def test_local_offsets_agree_with_the_geodesic(lat):
 def test_the_per_message_scale_is_good_to_the_check_tolerances():
     """observe() converts with one metric scale per message (at its latitude); over the
     largest distance it compares (the radio range) that is within a few metres."""
-    from catc.mbd import _scale
-
     for lat in (0.0, 40.7, 46.89, 60.0):
-        kx, ky = _scale(lat)
+        kx, ky = scale(lat)
         for az in range(0, 360, 30):
             d = 1500.0
             k = math.pi / 180 * 6_378_137.0
@@ -144,21 +143,19 @@ def test_the_per_message_scale_is_good_to_the_check_tolerances():
 
 
 def test_footprint_overlap_and_the_kinematic_envelope():
-    from catc.mbd import _iou, _max_min_dist
-
     car = (0.0, 0.0, 0.3, 5.0, 1.8)
-    assert _iou(car, car) == pytest.approx(1.0)
+    assert iou(car, car) == pytest.approx(1.0)
     ahead = (2.5 * math.sin(0.3), 2.5 * math.cos(0.3), 0.3, 5.0, 1.8)  # half a length on
-    assert _iou(car, ahead) == pytest.approx(1 / 3)
+    assert iou(car, ahead) == pytest.approx(1 / 3)
     across = (0.0, 0.0, 0.3 + math.pi / 2, 5.0, 1.8)  # a cross: 1.8 x 1.8 in common
-    assert _iou(car, across) == pytest.approx(3.24 / (18.0 - 3.24))
-    assert _iou((0.0, 0.0, 0.0, 5.0, 1.8), (3.0, 0.0, 0.0, 5.0, 1.8)) == 0.0  # next lane
+    assert iou(car, across) == pytest.approx(3.24 / (18.0 - 3.24))
+    assert iou((0.0, 0.0, 0.0, 5.0, 1.8), (3.0, 0.0, 0.0, 5.0, 1.8)) == 0.0  # next lane
     # F2MD calculateMaxMinDist: constant speed lies inside; from rest the greatest distance
     # accelerates half the time and brakes the other half
-    lo, hi = _max_min_dist(20.0, 20.0, 1.0, 10.0, 10.0, 70.0)
+    lo, hi = max_min_dist(20.0, 20.0, 1.0, 10.0, 10.0, 70.0)
     assert lo < 20.0 < hi and hi - 20.0 == pytest.approx(2.5) and 20.0 - lo == pytest.approx(2.5)
-    assert _max_min_dist(0.0, 0.0, 1.0, 10.0, 10.0, 70.0) == pytest.approx((0.0, 2.5))
-    lo, hi = _max_min_dist(69.0, 69.0, 1.0, 10.0, 10.0, 70.0)  # capped at 70 m/s
+    assert max_min_dist(0.0, 0.0, 1.0, 10.0, 10.0, 70.0) == pytest.approx((0.0, 2.5))
+    lo, hi = max_min_dist(69.0, 69.0, 1.0, 10.0, 10.0, 70.0)  # capped at 70 m/s
     assert lo == pytest.approx(69.0 - 2.5) and 69.0 < hi <= 70.0
 
 
@@ -184,6 +181,17 @@ def test_defaults_are_f2md_s_or_the_documented_adaptations():
             MbdConfig(**bad)
     with pytest.raises(ValueError, match="max_senders"):
         MisbehaviorDetector(max_senders=0)
+
+
+def test_every_check_is_one_function_in_the_table():
+    """catc.mbd.checks.TABLE lists each check function once, under a Detection.check name;
+    the pair checks (run per neighbour) come after the message checks."""
+    from catc.mbd.checks import TABLE
+
+    assert {k.name for k in TABLE} == set(CHECKS)
+    assert len({k.run for k in TABLE}) == len(TABLE)
+    pair = [k.pair for k in TABLE]
+    assert pair == sorted(pair) and any(pair)
 
 
 # --- false positives: real trajectories raise nothing -----------------------------------

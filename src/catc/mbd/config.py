@@ -1,0 +1,168 @@
+"""Every threshold of the misbehavior checks, with its source.
+
+The thresholds are F2MD's (IRT-SystemX/veins-f2md, commit 1d529e5,
+``src/veins/modules/application/f2md/``: ``F2MDParameters.h``, written "P.h" below, and
+``F2MDVeinsApp.cc`` for the vehicle limits).  Where one had to change for a 10 Hz BSM on a
+real radio, its comment says why; the ones marked "ours" have no F2MD counterpart.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+__all__ = ["MbdConfig"]
+
+
+def _positive(name: str, value: float) -> None:
+    if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+        raise ValueError(f"MbdConfig.{name} must be a finite number > 0, got {value!r}")
+
+
+@dataclass(frozen=True)
+class MbdConfig:
+    """Every threshold, with its source.  F2MD = IRT-SystemX/veins-f2md, commit 1d529e5,
+    ``src/veins/modules/application/f2md/``; "P.h" is its ``F2MDParameters.h``."""
+
+    # -- range -------------------------------------------------------------------------
+    #: Farthest plausible sender (m).  F2MD P.h MAX_PLAUSIBLE_RANGE = 420 (the old tree:
+    #: 417): the edge of reception of its simulated DSRC at Veins' transmit power.  Ours is
+    #: the RVE's radio (catc.channel: 20 dBm, -82 dBm sensitivity, free-space exponent 2,
+    #: Nakagami m 1.5), which still receives 1 % of BSMs at 1 km and 1e-5 at 1.5 km; real
+    #: DSRC / C-V2X line-of-sight ranges are reported up to ~1 km.  Without the distance
+    #: model the RVE delivers every vehicle (the default scenario's farthest is 750 m).
+    max_range_m: float = 1500.0
+    # -- vehicle limits (F2MDVeinsApp.cc: MAX_PLAUSIBLE_* = the SUMO vType's maxSpeed /
+    # accel / decel + 0.01, floors P.h MIN_MAX_SPEED 40, MIN_MAX_ACCEL 3, MIN_MAX_DECEL 4.5;
+    # SUMO's passenger car: 55.56 m/s, 2.6 and 4.5 m/s²).  A remote vehicle's type is not
+    # known here, so the limits are those of any car: --------------------------------------
+    #: m/s: 252 km/h, above production cars' speeds on unlimited roads (SUMO's 200 km/h
+    #: passenger limit is below them).
+    max_speed_mps: float = 70.0
+    #: m/s² (≈1 g, the tyre-road friction limit on dry asphalt; fast cars reach it).
+    max_accel_mps2: float = 10.0
+    #: m/s² (≈1 g; the default scenario's leader brakes at 7, above SUMO's decel 4.5, and
+    #: SUMO's passenger emergencyDecel is 9).
+    max_decel_mps2: float = 10.0
+    #: m/s added to the speed-change bound: two J2735 speed LSBs (0.02 m/s), so that the
+    #: encoding's rounding over a short interval is not read as acceleration.  F2MD: none.
+    speed_tolerance_mps: float = 0.04
+    # -- position consistency and position-speed ------------------------------------------
+    #: P.h MAX_TIME_DELTA = 3.1 s: position-speed is checked over at most this interval.
+    max_time_delta_s: float = 3.1
+    #: P.h MAX_MGT_RNG_UP = 2.1 m: tolerance above the greatest distance (position-speed);
+    #: also the tolerance of position-consistency (F2MD's legacy check has none: its
+    #: simulated positions are noise-free; real GNSS is not).
+    max_mgt_rng_up_m: float = 2.1
+    #: P.h MAX_MGT_RNG_DOWN = 6.2 m: tolerance below the least distance, plus F2MD's
+    #: speed-dependent term 0.3571 v - 0.01694 v² (LegacyChecks.cc; fitted to its urban
+    #: speeds, it turns negative above 37 m/s).  We keep at least ``max_mgt_rng_up_m``.
+    max_mgt_rng_down_m: float = 6.2
+    #: F2MD compares a BSM with the sender's previous one, 1 s earlier (its beacons are
+    #: 1 Hz).  At 10 Hz the tolerances above are larger than a 0.1 s interval can reveal,
+    #: so position-speed and heading use the newest earlier message at least this old.
+    anchor_s: float = 1.0
+    # -- heading ---------------------------------------------------------------------------
+    #: Largest angle between the heading and the direction of travel (deg).  F2MD P.h
+    #: MAX_HEADING_CHANGE = 90 (a heading pointing backwards).  Over ~1 s of travel the
+    #: largest honest angle in the real data here is 48 deg (OpenACC: raw GNSS jumping a
+    #: few metres sideways at 10 m/s; 99.99 % are below 23); 90 would pass a heading at
+    #: right angles to the path, so: 60.
+    max_heading_change_deg: float = 60.0
+    #: P.h POS_HEADING_TIME = 1.1 s: heading is compared over at most this interval.
+    pos_heading_time_s: float = 1.1
+    #: Below this speed (m/s) or displacement (m) heading is not checked: F2MD's 1 and 1
+    #: (PositionHeadingConsistancyCheck).
+    heading_min_speed_mps: float = 1.0
+    heading_min_distance_m: float = 1.0
+    # -- sudden appearance -----------------------------------------------------------------
+    #: P.h MAX_SA_RANGE = 210 m (half its 420 m range): a first message closer than this.
+    sa_range_m: float = 210.0
+    #: Inside this range (m) a sudden appearance is strong evidence (quarantine at once):
+    #: about 2 s of travel at highway speed, where a ghost can trigger a forward collision
+    #: warning (catc.apps.fcw).  Ours, not F2MD's.
+    sa_safety_range_m: float = 50.0
+    #: P.h MAX_SA_TIME = 2.1 s: no sudden appearance in the detector's first seconds (every
+    #: sender is new then) ...
+    sa_warmup_s: float = 2.1
+    #: ... nor before this many typical message intervals have passed (so that at 1 Hz and
+    #: high loss a vehicle in range has been heard: 0.5^10 = 1e-3).  Ours.
+    sa_warmup_intervals: float = 10.0
+    #: A new id that continues the path of an id last heard up to this long ago (s) is a
+    #: pseudonym change, not an appearance (J2735 TemporaryIDs change with the pseudonym
+    #: certificate, possibly after a silent period of a few seconds).  Ours.
+    sa_link_time_s: float = 5.0
+    #: ... and last heard at least this long (s) before the new id's first message: half
+    #: a 10 Hz interval (an id still sending alongside is a neighbour).  Ours.
+    sa_link_min_gap_s: float = 0.05
+    #: ... "continues": within ``sa_link_accel_mps2 dt² / 2 + max_mgt_rng_up_m`` of where
+    #: the old id's last speed and heading would have taken it (0.3 g of unannounced
+    #: acceleration or braking during the silence).  Ours.
+    sa_link_accel_mps2: float = 3.0
+    # -- beacon frequency and timing ----------------------------------------------------
+    #: Shortest plausible interval (s) between two BSMs of a sender: F2MD P.h
+    #: MAX_BEACON_FREQUENCY = 0.9 s for its 1 s beacons, i.e. 0.9 of the nominal interval;
+    #: SAE J2945/1's nominal BSM interval is 100 ms, so 0.09 s.  Measured on secMark.
+    min_interval_s: float = 0.09
+    #: A message up to this much older (s, secMark) than the sender's last one is a late
+    #: (reordered) frame, skipped without a finding; older is a replay.  Ours.
+    reorder_window_s: float = 0.5
+    #: A sender's secMark may run ahead of the receive clock by at most this much (s) over
+    #: its lowest latency so far: more is a forged or replayed timestamp.  Ours.
+    max_clock_skew_s: float = 1.0
+    # -- intersection ----------------------------------------------------------------------
+    #: F2MD IntersectionCheck: footprints overlap when intersection over union, times
+    #: (MAX_DELTA_INTER - dt) / MAX_DELTA_INTER, exceeds 0.5.
+    intersection_threshold: float = 0.5
+    #: P.h MAX_DELTA_INTER = 2.0 s (the old tree: 0.4).  The other vehicle's last position
+    #: is also moved forward by its speed over dt (ours; F2MD compares it where it was).
+    max_delta_inter_s: float = 2.0
+    #: F2MD's IntersectionCheck with the host uses dt = 0.11 s.
+    host_delta_s: float = 0.11
+    #: Host footprint (m): SUMO's passenger car, as every vehicle of the scenarios.
+    host_length_m: float = 5.0
+    host_width_m: float = 1.8
+    # -- Sybil (ours: F2MD has no legacy Sybil check; its grid Sybil attack puts ghosts
+    # SybilDistanceX = 5 m and SybilDistanceY = 2 m from the sender, P.h) ---------------------
+    #: Two ids moving together, closer than distinct vehicles could: same heading within
+    #: ``sybil_heading_deg`` and speed within ``sybil_speed_mps``, both above
+    #: ``sybil_min_speed_mps`` (in a queue close and slow is normal) ...
+    sybil_min_speed_mps: float = 5.0
+    sybil_heading_deg: float = 10.0
+    sybil_speed_mps: float = 1.0
+    #: ... side by side closer than half their widths plus this (m; adjacent lanes are
+    #: 3 m or more apart) ...
+    sybil_lateral_clearance_m: float = 0.5
+    #: ... and a bumper-to-bumper gap below ``sybil_min_gap_m + sybil_headway_s * speed``
+    #: (the shortest honest gap in the real data here is about a 0.33 s time gap, OpenACC
+    #: by hand at 16 m/s: 4.9 m, above the 2.6 m this gives there) ...
+    sybil_min_gap_m: float = 1.0
+    sybil_headway_s: float = 0.1
+    #: ... in this many consecutive messages of the younger id.
+    sybil_messages: int = 5
+    # -- quarantine (ours) -----------------------------------------------------------------
+    #: A sender is quarantined when ``quarantine_k`` of its messages fail within
+    #: ``quarantine_window_s``, or at once on a strong finding (sudden appearance inside
+    #: the safety range, intersection, Sybil); a single GNSS glitch is one failed message.
+    quarantine_k: int = 3
+    quarantine_window_s: float = 2.0
+    #: How long (s) from the last detection a quarantine lasts; renewed by new detections.
+    quarantine_s: float = 10.0
+    #: A sender quarantined on a strong finding (a fabricated vehicle) stays quarantined
+    #: while it keeps transmitting: each of its messages renews the quarantine.
+    sticky_strong: bool = True
+    #: Size (m) of the grid cells that find neighbours for intersection and Sybil.
+    grid_cell_m: float = 50.0
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if f.name == "sticky_strong":
+                continue
+            _positive(f.name, v)
+        if not self.intersection_threshold < 1.0:
+            raise ValueError("MbdConfig.intersection_threshold must be below 1 "
+                             f"(an overlap ratio), got {self.intersection_threshold}")
+        if not isinstance(self.quarantine_k, int) or not isinstance(self.sybil_messages, int):
+            raise ValueError("MbdConfig.quarantine_k and sybil_messages are counts (int)")
+

@@ -152,6 +152,29 @@ def test_udp_waiting_sees_datagrams_the_loop_has_not_read_yet():
     run(main())
 
 
+def test_udp_frames_come_out_in_arrival_order_across_the_channels():
+    """The event loop reads one datagram per socket per pass, so with a backlog on the RV
+    socket (a flood, or an OBU behind at start-up) a host frame used to be handed out
+    before RV frames sent ahead of it, and the OBU stepped its tick without them; reading
+    the RV socket to the end first would hand RV frames sent after it out ahead of it.
+    With 3 ticks' frames waiting in the kernel, recv() gives them in the order sent."""
+    async def main():
+        async with await open_receiver("udp", listen=("127.0.0.1", 0),
+                                       host_listen=("127.0.0.1", 0)) as rx:
+            sent = []
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as raw:
+                for tick in range(3):  # no await: the loop cannot read meanwhile
+                    for i in range(100):
+                        raw.sendto(b"rv %d %d" % (tick, i), rx.addresses["rv"])
+                        sent.append(("rv", b"rv %d %d" % (tick, i)))
+                    raw.sendto(b"host %d" % tick, rx.addresses["host"])
+                    sent.append(("host", b"host %d" % tick))
+            got = [(r.channel, r.data) for r in await collect(rx, len(sent))]
+            assert got == sent
+
+    run(main())
+
+
 def test_udp_port_in_use_is_a_one_line_error_and_leaks_nothing():
     async def main():
         async with await open_receiver("udp", listen=("127.0.0.1", 0),

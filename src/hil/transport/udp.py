@@ -1,5 +1,5 @@
 """UDP transport: one MessageFrame per datagram, one port per channel (asyncio-dgram
-sends; the receiver is an asyncio datagram protocol).
+sends; the receiver reads both sockets in the event loop, in order of arrival).
 
 Sender options: ``to=(host, port)`` for the RV frames and ``host_to=(host, port)`` for
 the host vehicle's frames.  Receiver options: ``listen=(host, port)`` and
@@ -31,6 +31,7 @@ import errno
 import logging
 import select
 import socket
+import struct
 import time
 from pathlib import Path
 
@@ -44,6 +45,13 @@ log = logging.getLogger(__name__)
 
 DEFAULT_RCVBUF = 4 * 1024 * 1024
 DEFAULT_MAX_FRAME = 2000
+
+#: The most datagrams read from one socket in one pass (:class:`UdpReceiver`): more
+#: than a 4 MiB buffer of BSMs holds.
+DRAIN_MAX = 20_000
+
+#: The largest datagram read: a UDP payload never exceeds it.
+_READ_SIZE = 65_536
 
 Address = tuple[str, int]
 
@@ -157,22 +165,34 @@ def _bound_socket(addr: Address, rcvbuf: int) -> tuple[socket.socket, int]:
     return sock, granted
 
 
-class _Channel(asyncio.DatagramProtocol):
-    """Hands every datagram of one bound socket straight to the receiver's queue."""
+#: Linux's SO_TIMESTAMPNS (= SCM_TIMESTAMPNS): the kernel stamps each datagram with the
+#: time it reached the socket (``struct timespec``, two native longs).
+_SO_TIMESTAMPNS = 35
+_TIMESPEC = struct.Struct("@ll")
 
-    def __init__(self, receiver: UdpReceiver, channel: str) -> None:
-        self.receiver, self.channel = receiver, channel
 
-    def datagram_received(self, data: bytes, addr) -> None:
-        self.receiver._datagram(self.channel, data)
-
-    def error_received(self, exc: OSError) -> None:
-        _count_error(self.receiver.stats, exc)
+def _stamp_arrivals(sock: socket.socket) -> bool:
+    """Ask the kernel to stamp ``sock``'s datagrams on arrival; False where it cannot."""
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+    except OSError:
+        return False
+    return True
 
 
 class UdpReceiver(Receiver):
-    """Two bound UDP sockets whose datagrams go straight into one queue (an asyncio
-    datagram protocol per socket, no task between the event loop and the queue)."""
+    """Two bound UDP sockets, one per channel, read by the event loop into one queue in
+    the order their datagrams reached the sockets.
+
+    The OBU's tick rule depends on that order (a tick at a host frame takes the RV frames
+    that came before it).  Read one datagram per socket per pass, as an asyncio datagram
+    transport does, a backlog on the RV socket (a flood, an OBU verifying signatures
+    behind real time) let a host frame overtake RV frames sent ahead of it; drained RV
+    socket first, RV frames sent after it overtook the host frame.  So whenever either
+    socket is readable both are read to the end (RV, host, RV again: every RV datagram
+    that arrived before the last host datagram read is then read too) and the batch is
+    handed out sorted by the kernel's arrival stamp (``SO_TIMESTAMPNS``; where the kernel
+    does not stamp, in the order read)."""
 
     kind = "udp"
 
@@ -183,31 +203,57 @@ class UdpReceiver(Receiver):
         self._max_frame = max_frame
         self._start_queue()
         self._closed = False
-        self._transports: list[asyncio.DatagramTransport] = []
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._stamped = all([_stamp_arrivals(s) for s in socks.values()])
+        self._ancillary = socket.CMSG_SPACE(_TIMESPEC.size)
         self.stats = {"frames": 0, "bytes": 0, "rv": 0, "host": 0, "oversized": 0,
                       "errors": 0, "rcvbuf": rcvbuf}
 
     async def _open(self) -> None:
-        loop = asyncio.get_running_loop()
-        for channel, sock in self._socks.items():
-            transport, _ = await loop.create_datagram_endpoint(
-                lambda ch=channel: _Channel(self, ch), sock=sock)
-            self._transports.append(transport)
+        self._loop = asyncio.get_running_loop()
+        for sock in self._socks.values():
+            sock.setblocking(False)
+            self._loop.add_reader(sock.fileno(), self._readable)
 
-    def _datagram(self, channel: str, data: bytes) -> None:
+    def _readable(self) -> None:
         if self._closed:
             return
-        if len(data) > self._max_frame:
-            count(self.stats, "oversized")
-            return
-        self._deliver(channel, data)  # type: ignore[arg-type]
+        batch: list[tuple[float, int, str, bytes]] = []
+        for channel in ("rv", "host", "rv"):
+            self._read(channel, batch)
+        batch.sort()
+        for _, _, channel, data in batch:
+            if len(data) > self._max_frame:
+                count(self.stats, "oversized")
+            else:
+                self._deliver(channel, data)  # type: ignore[arg-type]
+
+    def _read(self, channel: str, batch: list[tuple[float, int, str, bytes]]) -> None:
+        """Append what waits in ``channel``'s socket buffer to ``batch`` as (arrival,
+        order read, channel, octets): at most :data:`DRAIN_MAX` datagrams, a bound
+        should a flood outrun the reads."""
+        sock = self._socks[channel]
+        for _ in range(DRAIN_MAX):
+            try:
+                data, ancdata, _, _ = sock.recvmsg(_READ_SIZE, self._ancillary)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as exc:
+                _count_error(self.stats, exc)
+                return
+            arrival = time.time()
+            for level, kind, value in ancdata:
+                if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS \
+                        and len(value) >= _TIMESPEC.size:
+                    sec, nsec = _TIMESPEC.unpack_from(value)
+                    arrival = sec + nsec * 1e-9
+            batch.append((arrival, len(batch), channel, data))
 
     def waiting(self) -> bool:
         """Also True while a datagram sits in a socket's kernel buffer, not yet read by
-        the event loop (it reads one datagram per socket per pass).  Over loopback a
-        datagram is in the receiver's buffer when ``sendto`` returns, so every RV frame
-        sent before a host frame is found here or in the queue once that host frame is
-        received."""
+        the event loop.  Over loopback a datagram is in the receiver's buffer when
+        ``sendto`` returns, so every RV frame sent before a host frame is found here or in
+        the queue once that host frame is received."""
         if self._closed:
             return False
         if super().waiting():
@@ -219,9 +265,10 @@ class UdpReceiver(Receiver):
         if self._closed:
             return
         self._closed = True
-        for transport in self._transports:
-            transport.close()
-        await asyncio.sleep(0)  # connection_lost: each transport closes its socket
+        for sock in self._socks.values():
+            if self._loop is not None:
+                self._loop.remove_reader(sock.fileno())
+            sock.close()
         self._end()
 
 

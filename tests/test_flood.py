@@ -1,6 +1,6 @@
 """Issue 18's experiment: a second process floods the ``obu run`` process's RV port with
 random bytes, oversize datagrams and bit-flipped, truncated copies of the host's and the
-RVs' real frames while ``rve run`` replays a real OpenACC run; the OBU's warnings, FCW
+RVs' real frames while ``rve run`` replays the built-in scenario; the OBU's warnings, FCW
 accuracy and per-RV PTE95 equal those of the same run without the flood, and its counters
 account for every datagram."""
 
@@ -13,28 +13,27 @@ import sys
 import pytest
 
 from hil.transport.udp import free_ports
-from tests.conftest import shared_path
 from tests.test_obu import finish, rve, score, start_obu
 
 PY = sys.executable
-RUN = ("--per", "50", "--seed", "7", "--speed", "8", "--duration", "40")
+RUN = ("--per", "50", "--seed", "7", "--speed", "8", "--duration", "30")
 
 
 def _dataset() -> str:
-    path = shared_path("openacc-zalazone", "short_setting_handling_part36.csv")
-    if not path.exists():
-        pytest.skip(f"shared data not found: {path}")
-    return str(path)
+    """The built-in scenario: its leader brakes at 20 s, so the run has FCW and EEBL
+    warnings for the flood to spoil (an OpenACC run without any, used before, let an OBU
+    that stops warning at the first garbage pass)."""
+    return "scenario:highway-braking"
 
 
 def _run(tmp, dataset: str, flood: bool) -> tuple[dict, dict, dict | None]:
     ports = free_ports()
     obu = start_obu(tmp, ports, "--predictor", "hgp")
     flooder = None
-    if flood:  # 40 s of data at speed 8: 5 s; the flood runs a little longer
+    if flood:  # 30 s of data at speed 8: 4 s; the flood runs a little longer
         flooder = subprocess.Popen(
             [PY, "-m", "rve.cli", "flood", "--dataset", dataset, "--to",
-             f"127.0.0.1:{ports[0]}", "--rate", "2000", "--duration", "6", "--per", "50",
+             f"127.0.0.1:{ports[0]}", "--rate", "2000", "--duration", "5", "--per", "50",
              "--seed", "7", "--speed", "8"], stdout=subprocess.PIPE, text=True)
     summary = rve(ports, "--dataset", dataset, *RUN, "--capture", str(tmp))
     flood_out = None
@@ -55,6 +54,8 @@ def test_a_flood_of_garbage_changes_nothing_and_is_accounted_for(tmp_path):
     clean, _, _ = _run(tmp_path / "clean", dataset, flood=False)
     flooded, c, sent = _run(tmp_path / "flood", dataset, flood=True)
     assert sent["datagrams"] > 8_000 and sent["sent"]["copy"] > 2_500
+    # the clean run warns (FCW on the braking leader), so the comparison can fail
+    assert clean["warnings"].get("fcw", 0) >= 1 and clean["fcw"]["tp"] > 0, clean["warnings"]
     # nothing the OBU decided changed
     key = lambda e: (e["app"], e["kind"], e["rv"], e["t"])  # noqa: E731
     assert sorted(map(key, flooded["events"])) == sorted(map(key, clean["events"]))

@@ -194,7 +194,7 @@ mkdir -p /newroot/dev/pts /newroot/dev/shm /newroot/run /newroot/tmp /newroot/vc
 mount -t devpts devpts /newroot/dev/pts
 mount -t tmpfs tmpfs /newroot/dev/shm
 mount -t tmpfs tmpfs /newroot/run
-mount -t tmpfs tmpfs /newroot/tmp
+# /tmp stays the overlay's (host files, writes to the tmpfs): a checkout under /tmp shows
 mount --bind /exchange /newroot/vcanvm
 ip link set lo up
 chroot /newroot /bin/sh -c 'ip link add dev vcan0 type vcan && ip link set dev vcan0 mtu 72 up' \

@@ -129,7 +129,8 @@ def measure(n: int, per: float, predictor: str, seconds: float, capture: bool,
                "--host-listen", f"127.0.0.1:{ports[1]}", "--predictor", predictor,
                "--idle-exit", "2", "--no-progress", "--warnings", os.devnull]
         if keep is not None:
-            cmd += ["--capture", str(keep / f"rvs{n}-per{per:g}-{predictor}-{verify}")]
+            cmd += ["--capture", str(keep / f"rvs{n}-per{per:g}-{predictor}-{verify}"),
+                    "--overwrite"]  # a cell run again replaces its capture
         elif capture:
             cmd += ["--capture", str(Path(tmp) / "capture")]
         if web_port is not None:

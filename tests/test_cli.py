@@ -131,3 +131,50 @@ def test_demo_replays_the_nyc_event_through_the_wire_and_the_ca_tc():
     text = out.stdout.decode()
     assert "T =  -2.6 s  FCW start on A305214A" in text
     assert "gap 34.3 m < r_w" in text
+
+
+@pytest.mark.parametrize("module, argv", [
+    ("obu.cli", ["run", "--duration", "nan"]),  # never stopped
+    ("obu.cli", ["run", "--duration", "-5"]),
+    ("obu.cli", ["run", "--idle-exit", "-1"]),
+    ("obu.cli", ["run", "--collect-ms", "nan"]),
+    ("rve.cli", ["run", "--speed", "inf"]),
+    ("rve.cli", ["run", "--duration", "-5"]),
+    ("rve.cli", ["run", "--to", "127.0.0.1:0"]),
+    ("rve.cli", ["run", "--latency", "nan"]),
+    ("rve.cli", ["run", "--per", "nan"]),
+    ("rve.cli", ["flood", "--dataset", "x", "--to", "127.0.0.1:0"]),
+    ("rve.cli", ["flood", "--dataset", "x", "--to", "127.0.0.1:9", "--rate", "inf"]),
+])
+def test_values_that_make_no_run_are_one_line_and_exit_2(module, argv, capsys):
+    """Issue 27: these were accepted in silence (``obu run --duration nan`` never stops)."""
+    import importlib
+
+    try:
+        code = importlib.import_module(module).main(argv)
+    except SystemExit as stop:  # argparse's own exit
+        code = stop.code
+    assert code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err and "Traceback" not in "\n".join(err)
+    assert any(x in err[-1] for x in ("finite", "above 0", "from 0", "port 0")), err[-1]
+
+
+def test_an_attack_parameter_that_is_not_finite_is_refused():
+    from catc.attacks import parse
+
+    with pytest.raises(ValueError, match="ahead must be a finite number"):
+        parse("ghost:ahead=nan")
+
+
+def test_a_reader_that_closes_the_pipe_ends_the_command_quietly():
+    """Issue 27: ``captures score | head`` printed a BrokenPipeError traceback."""
+    proc = subprocess.Popen([sys.executable, "-m", "captures.cli", "decode", "--full",
+                             str(shared_path(VEC, "bsmLogDuringEvent.bin"))],  # 640 kB
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, bufsize=0)
+    assert proc.stdout is not None and proc.stderr is not None
+    assert proc.stdout.read(100)  # the first line or so, then the reader goes away
+    proc.stdout.close()
+    err = proc.stderr.read().decode()
+    assert proc.wait(60) == 141, err
+    assert "Traceback" not in err and "BrokenPipe" not in err, err

@@ -10,6 +10,7 @@ import asyncio
 import contextlib
 import json
 import random
+import shutil
 import socket
 import subprocess
 import sys
@@ -102,6 +103,30 @@ def test_udp_end_to_end_on_the_default_scenario(tmp_path):
     table = subprocess.run([PY, "-m", "captures.cli", "score", str(tmp_path)],
                            capture_output=True, text=True, timeout=120).stdout
     assert f"FCW accuracy {s['fcw_accuracy']}" in table
+    assert s["complete"] and s["run"]["coverage"] == 1.0 and s["run"]["gaps"] == 0
+    assert s["run"]["obu"] == "clean (idle)" and s["run"]["rve"] == "clean (replayed)"
+    assert s["fcw"] == {k: s["apps"]["fcw"][k] for k in ("tp", "tn", "fp", "fn")}
+    assert set(s["apps"]) == {"fcw", "eebl", "bsw", "lcw"}
+    # the same capture with every FCW warning moved by hand to another real vehicle: each
+    # of those ticks is a false positive on it and a false negative on the leader
+    moved = tmp_path / "moved"
+    shutil.copytree(tmp_path, moved, ignore=shutil.ignore_patterns("moved"))
+    ids = json.loads((tmp_path / "rve.config.json").read_text())["vehicles"]
+    leader = ids["lead"]
+    other = next(v for k, v in ids.items() if k not in ("lead", "host"))
+    ticks = [json.loads(line) for line in (tmp_path / "obu.ticks.jsonl").open()]
+    on_leader = sum(1 for t in ticks for w in t["warnings"] if w[:2] == ["fcw", leader])
+    assert on_leader >= s["fcw"]["tp"] > 0
+    with (moved / "obu.ticks.jsonl").open("w") as f:
+        for t in ticks:
+            t["warnings"] = [[w[0], other, *w[2:]] if w[:2] == ["fcw", leader] else w
+                             for w in t["warnings"]]
+            f.write(json.dumps(t) + "\n")
+    m = score(moved)
+    assert m["fcw"]["tp"] == 0
+    assert m["fcw"]["fp"] == s["fcw"]["fp"] + s["fcw"]["tp"]  # false alarms stay false
+    assert m["fcw"]["fn"] == s["fcw"]["fn"] + s["fcw"]["tp"]
+    assert m["fcw_accuracy"] < s["fcw_accuracy"]
 
 
 def test_live_equals_offline(tmp_path):
@@ -377,6 +402,91 @@ def test_obu_sigterm_flushes_and_kill_9_keeps_all_but_the_last_tick(tmp_path):
         if sig == signal.SIGTERM:
             assert obu.returncode == 0
             assert json.loads((cap / "obu.counters.json").read_text())["ticks"] == len(ticks)
+            end = json.loads((cap / "obu.end.json").read_text())
+            assert (end["exit"], end["reason"], end["ticks"]) == ("signal", "SIGTERM",
+                                                                   len(ticks))
+            config = json.loads((cap / "obu.config.json").read_text())
+            assert end["run_id"] == config["run_id"] and len(end["run_id"]) == 32
+        else:
+            assert not (cap / "obu.end.json").exists()  # killed: nothing could say so
+
+
+def test_an_obu_killed_at_40_percent_scores_as_an_incomplete_run(tmp_path):
+    """Issue 27: kill -9 of the OBU at 40 % of the run left a capture that scored "FCW
+    accuracy 1.0" on its 202 ticks with no word of the rest.  Now the score joins the
+    ticks with the replay's host frames: coverage about 40 %, the OBU's missing end
+    record, the coverage beside every figure, and exit 3 unless --partial."""
+    import os
+    import signal
+
+    ports = free_ports()
+    obu = start_obu(tmp_path, ports, "--predictor", "ca")
+    sender = subprocess.Popen([PY, "-m", "rve.cli", "run", "--to", f"127.0.0.1:{ports[0]}",
+                               "--host-to", f"127.0.0.1:{ports[1]}", "--no-progress",
+                               "--speed", "4", "--capture", str(tmp_path)],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    ticks = tmp_path / "obu.ticks.jsonl"
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and obu.poll() is None:
+            if ticks.exists() and sum(1 for _ in ticks.open()) >= 200:  # of 500
+                break
+            time.sleep(0.05)
+        os.kill(obu.pid, signal.SIGKILL)
+        obu.wait(20)
+        _, err = sender.communicate(timeout=120)
+        assert sender.returncode == 0, err
+    finally:
+        for p in (sender, obu):
+            if p.poll() is None:
+                p.kill()
+                p.wait(10)
+    s = subprocess.run([PY, "-m", "captures.cli", "score", str(tmp_path)],
+                       capture_output=True, text=True, timeout=120)
+    assert s.returncode == 3, s.stderr
+    assert "incomplete run" in s.stderr and len(s.stderr.strip().splitlines()) == 1
+    assert s.stdout.startswith("INCOMPLETE RUN")
+    for line in s.stdout.splitlines():
+        if line.startswith(("PTE95 ", "FCW accuracy")):
+            assert "[coverage " in line, line
+    j = subprocess.run([PY, "-m", "captures.cli", "score", str(tmp_path), "--json",
+                        "--partial"], capture_output=True, text=True, timeout=120)
+    assert j.returncode == 0, j.stderr
+    r = json.loads(j.stdout)
+    run = r["run"]
+    assert r["complete"] is False and 490 <= run["expected_ticks"] <= 510
+    assert 0.35 <= run["coverage"] <= 0.6, run
+    assert run["gaps"] >= 1 and run["longest_gap_s"] >= 15.0
+    assert run["obu"].startswith("no end record") and run["rve"] == "clean (replayed)"
+
+
+def test_a_capture_directory_holding_a_run_is_refused_unless_overwritten(tmp_path):
+    """Issue 27: a second run into the same directory appended to the first, and the score
+    counted 1,000 ticks without a word.  Each daemon refuses a directory with its own
+    files in one line, or replaces them with --overwrite; the other's files stay."""
+    ports = free_ports()
+    args = [PY, "-m", "rve.cli", "run", "--to", f"127.0.0.1:{ports[0]}", "--host-to",
+            f"127.0.0.1:{ports[1]}", "--no-progress", "--asap", "--duration", "1",
+            "--capture", str(tmp_path)]
+    first = subprocess.run(args, capture_output=True, text=True, timeout=120)
+    assert first.returncode == 0, first.stderr
+    (tmp_path / "obu.config.json").write_text("{}")  # an OBU's file: not the RVE's
+    lines = (tmp_path / "rve.schedule.jsonl").read_text()
+    again = subprocess.run(args, capture_output=True, text=True, timeout=120)
+    assert again.returncode == 2
+    assert again.stderr.strip().count("\n") == 0 and "already holds an RVE run" in again.stderr
+    assert (tmp_path / "rve.schedule.jsonl").read_text() == lines
+    over = subprocess.run([*args, "--overwrite"], capture_output=True, text=True, timeout=120)
+    assert over.returncode == 0, over.stderr
+    n = len(lines.splitlines())  # replaced, not appended
+    assert len((tmp_path / "rve.schedule.jsonl").read_text().splitlines()) == n
+    assert (tmp_path / "obu.config.json").read_text() == "{}"
+    obu = subprocess.run([PY, "-m", "obu.cli", "run", "--listen", f"127.0.0.1:{ports[0]}",
+                          "--host-listen", f"127.0.0.1:{ports[1]}", "--capture",
+                          str(tmp_path), "--duration", "0.5", "--no-progress"],
+                         capture_output=True, text=True, timeout=60)
+    assert obu.returncode == 2 and "already holds an OBU run" in obu.stderr
+    assert obu.stderr.strip().count("\n") == 0
 
 
 def test_captures_decode_reads_the_obus_rx_capture(tmp_path):
@@ -403,3 +513,26 @@ def test_score_reads_a_torn_last_line_but_not_a_torn_middle(tmp_path):
     path.write_text('{"a":1}\n{"b":\n{"c":3}\n')
     with pytest.raises(CaptureError, match=":2: not a JSON line"):
         _lines(path)
+
+
+def test_the_first_look_at_the_live_state_gets_the_newest_tick(tmp_path):
+    """Issue 27: the first ``GET /api/state`` after the OBU started answered an empty
+    state, because no state is built until someone looks.  Now the first look builds the
+    newest tick's."""
+    import socket
+    import urllib.request
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        web = s.getsockname()[1]
+    ports = free_ports()
+    obu = start_obu(tmp_path, ports, "--predictor", "ca", "--web", str(web))
+    try:
+        rve(ports, "--asap", "--duration", "3", "--capture", str(tmp_path))
+        with urllib.request.urlopen(f"http://127.0.0.1:{web}/api/state", timeout=10) as r:
+            state = json.loads(r.read())
+        assert obu.poll() is None  # still running (--idle-exit 2): a live answer
+    finally:
+        finish(obu)
+    last = json.loads((tmp_path / "obu.ticks.jsonl").read_text().splitlines()[-1])
+    assert state["t"] == last["t"] and len(state["rvs"]) == last["tracked"] > 0

@@ -82,7 +82,7 @@ def test_hold_error_at_half_rate_is_the_distance_since_the_last_message(ngsim):
 def test_fcw_is_exact_on_the_true_states_and_degrades_with_loss(ngsim):
     """At PER 0 and 10 Hz every predictor reproduces the truth's FCW (accuracy 1 with real
     warnings in it); at PER 90 % the BSM-dependent baseline (hold) gets ticks wrong."""
-    tabs = [t for t in ngsim[:12] if truth_fcw(fcw_scene(t)).any()][:3]
+    tabs = [t for t in ngsim[:12] if any(truth_fcw(fcw_scene(t)))][:3]
     assert tabs, "no FCW in the first NGSIM pairs"
     for name in ("hold", "hgp"):
         r = pool("ngsim", [run_cell(t, name, Cell(0.0), 0) for t in tabs])

@@ -368,8 +368,9 @@ def build(doc: Doc, sweep_doc: dict, hgp: dict | None, capture_figs: list[Path],
         "**FCW accuracy**: the trip's host (OpenACC: the last car of the platoon; NGSIM: the "
         "follower) and the vehicle ahead of it go through the OBU's whole CA-TC (context-aware "
         "map, lane estimation, zones, FCW CAMP Linear) with the same losses; at every host "
-        "tick, does an FCW condition hold, against the FCW on the true states (PER 0, 10 Hz). "
-        "Accuracy = (TP+TN)/all ticks.",
+        "tick, the vehicle an FCW warns on against the FCW on the true states (PER 0, "
+        "10 Hz), vehicle by vehicle (a warning on the wrong vehicle is an FP and an FN). "
+        "Accuracy = (TP+TN)/(TP+TN+FP+FN).",
         "**Threshold exceedance**: the number of ticks with PTE > PTE_th, PTE_th 0.2 … 1.6 m.",
         "The paper's SPMD numbers are its published table (a different dataset: SPMD, Ann "
         "Arbor); they are there for comparison, not as our result.",

@@ -6,10 +6,13 @@
   ``obu.config.json``) and interpolated to the tick.  Tick times are the host's secMark
   clock, which differs from the dataset's time by whole minutes; the offset comes from the
   host's secMark at the first tick.  PTE95 overall and per RV.
-* **FCW accuracy**: the ground truth is the FCW output on the true states at PER 0 and
-  10 Hz: the same dataset through the offline simulator (:func:`catc.replay.simulate`,
-  every message delivered, values through UPER as on the wire).  At every tick both say
-  whether an FCW warning holds; accuracy = (TP + TN) / (TP + TN + FP + FN).
+* **Warnings, by vehicle** (FCW, EEBL, BSW, LCW): the ground truth is each application's
+  output on the true states at PER 0 and 10 Hz: the same dataset through the offline
+  simulator (:func:`catc.replay.simulate`, every message delivered, values through UPER
+  as on the wire).  At every tick both name the vehicles each application warns on; a
+  warning on the wrong vehicle is a false positive on it and a false negative on the
+  right one (:mod:`catc.apps.verdict`).  Accuracy = (TP + TN) / (TP + TN + FP + FN);
+  ``fcw_accuracy`` and ``fcw`` are FCW's, ``apps`` has every application's.
 * **Counts**: messages sent and dropped by the channel (``rve.schedule.jsonl``), received
   and decoded by the OBU (``obu.rx.jsonl``), decode errors, and warning events by app.
 * **Security** (``obu run --verify log|enforce``): the IEEE 1609.2 verdict of every RV
@@ -31,16 +34,28 @@ from pathlib import Path
 
 import numpy as np
 
+from catc.apps.verdict import KEYS, Confusion, by_app
 from catc.bsm import MINUTE_MS, sec_mark
 from hil.capture import clock_offset, read_capture, truth_in_frame
-from hil.capture.schema import received_key, scheduled_key
+from hil.capture.schema import hex_id, received_key, scheduled_key
 from hil.datasets import load_table
 
 HELP = """\
 Score a capture directory written by `rve run --capture DIR` and `obu run --capture DIR`:
-PTE95 overall and per RV, FCW accuracy with TP/TN/FP/FN against the FCW on the true
-states, messages sent / dropped / received, decode errors, latency from send to decision,
-and the warning events.  --json prints the same as one JSON object."""
+PTE95 overall and per RV, the accuracy of each warning (FCW, EEBL, BSW, LCW) with
+TP/TN/FP/FN against the application on the true states, vehicle by vehicle (a warning on
+the wrong vehicle is an FP on it and an FN on the right one), messages sent / dropped /
+received, decode errors, latency from send to decision, and the warning events.  --json
+prints the same as one JSON object.
+
+Coverage: the OBU's ticks against every host frame the replay has, the gaps, and how each
+daemon ended (rve.end.json, obu.end.json: clean, signal, error; none when killed).  A run
+the OBU did not tick whole is incomplete: every figure says its coverage, and the exit
+status is 3 unless --partial."""
+
+
+#: The exit status of ``captures score`` on an incomplete run (without ``--partial``).
+INCOMPLETE = 3
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -48,18 +63,22 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description=HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("dir", type=Path, metavar="DIR", help="the shared capture directory")
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    p.add_argument("--partial", action="store_true",
+                   help=f"exit 0 on an incomplete run too (without it: exit {INCOMPLETE})")
     p.set_defaults(func=run)
 
 
-def _ground_truth_fcw(rve_cfg: dict) -> dict[float, bool]:
-    """Tick time -> FCW holds, on the true states (PER 0, 10 Hz, no latency)."""
+def _ground_truth(rve_cfg: dict) -> dict[float, dict[str, frozenset[str]]]:
+    """Tick time -> {app: the RV ids (hex) it warns on}, on the true states (PER 0,
+    10 Hz, no latency)."""
     s = rve_cfg["settings"]
-    return _ground_truth_fcw_of(s["dataset"], s.get("trip"), s.get("host"), s.get("idm_host"),
-                                s.get("duration"))
+    return _ground_truth_of(s["dataset"], s.get("trip"), s.get("host"), s.get("idm_host"),
+                            s.get("duration"))
 
 
 @functools.lru_cache(maxsize=8)  # captures of one run scored again (a replay, a sweep)
-def _ground_truth_fcw_of(dataset: str, trip, host, idm_host, duration) -> dict[float, bool]:
+def _ground_truth_of(dataset: str, trip, host, idm_host, duration
+                     ) -> dict[float, dict[str, frozenset[str]]]:
     from catc.apps import SafetyApps
     from catc.cam import CamConfig, ContextAwareMap
     from catc.channel import ChannelConfig
@@ -72,7 +91,8 @@ def _ground_truth_fcw_of(dataset: str, trip, host, idm_host, duration) -> dict[f
         host = "idm-host"
     the_plan = plan(table, ChannelConfig(), 0, host, duration)
     cam = ContextAwareMap(CamConfig(predictor="ca"), SafetyApps())
-    return {round(snap.t, 3): any(w.app == "fcw" for w in snap.warnings)
+    return {round(snap.t, 3): {a: frozenset(v) for a, v in by_app(
+                (w.app, hex_id(w.rv_id)) for w in snap.warnings).items()}
             for snap in simulate(the_plan, cam)}
 
 
@@ -102,17 +122,16 @@ def score(directory: Path) -> dict:
                                                 row["y"] - np.interp(td, t, y))))
     all_pte = np.concatenate([np.array(v) for v in per_rv.values()]) if per_rv else np.array([])
 
-    # FCW accuracy against the ground truth
-    gt = _ground_truth_fcw(rve_cfg)
-    conf = Counter()
+    # the warnings against the ground truth, vehicle by vehicle (catc.apps.verdict)
+    gt = _ground_truth(rve_cfg)
+    confusion = Confusion()
     for tk in ticks:
         truth_warn = gt.get(round(tk["t"], 3))  # both on the host's secMark clock
         if truth_warn is None:
             continue
-        obu_warn = any(w[0] == "fcw" for w in tk["warnings"])
-        conf["tp" if obu_warn and truth_warn else "tn" if not obu_warn and not truth_warn
-             else "fp" if obu_warn else "fn"] += 1
-    total = sum(conf.values())
+        confusion.add(truth_warn, by_app((w[0], w[1]) for w in tk["warnings"]))
+    apps = confusion.as_dict()
+    whole = coverage(set(gt), ticks, cap.rve_end, cap.obu_end)
 
     # counts and latency
     rv_sched = [r for r in schedule if r["channel"] == "rv" and r.get("cause") != "attack"]
@@ -135,8 +154,9 @@ def score(directory: Path) -> dict:
         "pte_mean_m": round(float(all_pte.mean()), 4) if len(all_pte) else None,
         "pte95_per_rv": {names.get(k, k): round(float(np.percentile(v, 95)), 4)
                          for k, v in sorted(per_rv.items())},
-        "fcw_accuracy": round((conf["tp"] + conf["tn"]) / total, 4) if total else None,
-        "fcw": {k: conf[k] for k in ("tp", "tn", "fp", "fn")},
+        "fcw_accuracy": apps["fcw"]["accuracy"],
+        "fcw": {k: apps["fcw"][k] for k in KEYS},
+        "apps": apps,
         "sent": len(sent), "dropped": len(rv_sched) - len(sent), "received": len(ok),
         "decode_errors": dict(bad),
         "security": dict(security),
@@ -153,7 +173,8 @@ def score(directory: Path) -> dict:
         "attacks": attacks,
         "mbd": _detection(attacks, schedule, rx, names, mbr) if attacks and mbr is not None
         else None,
-        "ticks": len(ticks), "predictor": obu_cfg["settings"].get("predictor"),
+        "ticks": len(ticks), "run": whole, "complete": whole["coverage"] == 1.0,
+        "predictor": obu_cfg["settings"].get("predictor"),
         "per": rve_cfg["channel"]["per"], "rate_hz": rve_cfg["channel"]["rate_hz"],
         "dataset": rve_cfg["dataset"]["name"],
     }
@@ -265,17 +286,56 @@ def _detection(out: dict, schedule: list[dict], rx: list[dict], names: dict[str,
             "reports": len(mbr)}
 
 
+def ending(end: dict | None) -> str:
+    """How a daemon's run ended, in words, from its end record (None: killed)."""
+    if end is None:
+        return "no end record (killed, or still running)"
+    return end["exit"] + (f" ({end['reason']})" if end.get("reason") else "")
+
+
+def coverage(expected: set[float], ticks: list[dict], rve_end: dict | None,
+             obu_end: dict | None) -> dict:
+    """How whole the run is: the OBU's ticks against every host frame of the replay
+    (``expected``: their times on the host's secMark clock), the gaps (runs of missing
+    consecutive ticks, ``[first, last]`` tick time), and how each daemon ended."""
+    seen = {round(tk["t"], 3) for tk in ticks}
+    gaps: list[list[float]] = []
+    for t in sorted(expected - seen):
+        if gaps and t - gaps[-1][1] <= 0.1 + 1e-6:
+            gaps[-1][1] = t
+        else:
+            gaps.append([t, t])
+    longest = max((round(b - a + 0.1, 3) for a, b in gaps), default=0.0)
+    n = len(expected)
+    return {"expected_ticks": n, "ticks": len(expected & seen),
+            "coverage": round(len(expected & seen) / n, 4) if n else 0.0,
+            "gaps": len(gaps), "longest_gap_s": longest, "first_gaps": gaps[:5],
+            "rve": ending(rve_end), "obu": ending(obu_end)}
+
+
 def table(r: dict) -> str:
-    f = r["fcw"]
+    f, run = r["fcw"], r["run"]
+    # beside every figure of an incomplete run: how much of the run it is
+    part = "" if r["complete"] else f"  [coverage {100 * run['coverage']:.1f} %]"
     lines = [
         f"run: {r['dataset']}, predictor {r['predictor']}, PER {100 * r['per']:g} %, "
         f"{r['rate_hz']:g} Hz, {r['ticks']} OBU ticks",
+        f"coverage: {run['ticks']} of {run['expected_ticks']} host ticks "
+        f"({100 * run['coverage']:.1f} %), {run['gaps']} gaps (longest "
+        f"{run['longest_gap_s']} s); RVE ended: {run['rve']}; OBU ended: {run['obu']}",
         f"messages: sent {r['sent']}, dropped by the channel {r['dropped']}, "
         f"received {r['received']}, decode errors {sum(r['decode_errors'].values())}",
-        f"PTE95 {r['pte95_m']} m (mean {r['pte_mean_m']} m)",
+        f"PTE95 {r['pte95_m']} m (mean {r['pte_mean_m']} m){part}",
         f"FCW accuracy {r['fcw_accuracy']}  (TP {f['tp']}, TN {f['tn']}, FP {f['fp']}, "
-        f"FN {f['fn']})",
+        f"FN {f['fn']}; by vehicle){part}",
     ]
+    if not r["complete"]:
+        lines.insert(0, f"INCOMPLETE RUN: the OBU ticked {run['ticks']} of the replay's "
+                        f"{run['expected_ticks']} host frames; every figure below covers "
+                        "only those ticks")
+    others = [f"{app.upper()} {c['accuracy']} ({c['tp']}/{c['tn']}/{c['fp']}/{c['fn']})"
+              for app, c in r["apps"].items() if app != "fcw"]
+    lines.append("other warnings, accuracy (TP/TN/FP/FN): " + ", ".join(others) + part)
     if r.get("security"):
         sec = r["security"]
         lines.append(f"IEEE 1609.2: verified {sec.get('ok', 0)}, rejected {r['rejected']}"
@@ -305,7 +365,7 @@ def table(r: dict) -> str:
     lines.append("warning events: " + (", ".join(f"{k} {v}" for k, v in
                                                  sorted(r["warnings"].items())) or "none"))
     lines.append("PTE95 per RV [m]: " + ", ".join(f"{k} {v}" for k, v in
-                                                   r["pte95_per_rv"].items()))
+                                                   r["pte95_per_rv"].items()) + part)
     return "\n".join(lines)
 
 
@@ -319,4 +379,10 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(result))
     else:
         print(table(result))
+    if not result["complete"] and not args.partial:
+        cov = result["run"]
+        print(f"captures score: {args.dir}: incomplete run, coverage "
+              f"{100 * cov['coverage']:.1f} % ({cov['ticks']} of {cov['expected_ticks']} "
+              f"ticks; OBU ended: {cov['obu']}); --partial accepts it", file=sys.stderr)
+        return INCOMPLETE
     return 0

@@ -110,6 +110,8 @@ def parse(text: str) -> Attack:
                 params[key] = float(value)
             except ValueError:
                 raise ValueError(f"--attack {text!r}: {key} must be a number") from None
+            if not math.isfinite(params[key]):
+                raise ValueError(f"--attack {text!r}: {key} must be a finite number")
     if kind == "sybil":
         params["count"] = int(params["count"])
         if not 1 <= params["count"] <= 64:

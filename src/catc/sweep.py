@@ -9,8 +9,9 @@ and the result is scored exactly as ``captures score`` scores a live capture:
 
 * **PTE**: at every tick, for every tracked RV, the 2-D distance between the CAM's
   estimate and the RV's true position at the tick's time (docs/architecture.md, "Metrics").
-* **FCW accuracy**: at every tick, does an FCW condition hold, against the FCW on the
-  true states (PER 0, 10 Hz, every message delivered; :func:`truth_fcw`).
+* **FCW accuracy**: at every tick, the vehicles an FCW warns on against those the FCW on
+  the true states warns on (PER 0, 10 Hz, every message delivered; :func:`truth_fcw`),
+  vehicle by vehicle (:mod:`catc.apps.verdict`).
 
 The host is the trip's ``default_host`` (OpenACC: the last car of the platoon; NGSIM: the
 follower), every other vehicle is an RV.  Every predictor sees the same loss pattern: the
@@ -29,6 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from catc.apps.verdict import KEYS, tick_confusion
 from catc.channel import ChannelConfig
 from catc.mobility import MobilityTable, Track
 
@@ -113,15 +115,16 @@ def _cam(predictor: str, table: MobilityTable):
                            SafetyApps(AppsConfig(enabled=("fcw",))))
 
 
-def truth_fcw(table: MobilityTable) -> np.ndarray:
-    """Whether an FCW condition holds at each host tick on the true states: every message
-    at 10 Hz delivered (values through UPER), the CA predictor (each tick has a fresh BSM,
-    so the predictor does not matter).  The definition ``captures score`` uses."""
+def truth_fcw(table: MobilityTable) -> list[frozenset[int]]:
+    """The vehicles (TemporaryIDs) an FCW warns on at each host tick on the true states:
+    every message at 10 Hz delivered (values through UPER), the CA predictor (each tick
+    has a fresh BSM, so the predictor does not matter).  The definition ``captures score``
+    uses; a tick warns when its set is not empty."""
     from catc.replay import plan, simulate
 
     the_plan = plan(table, ChannelConfig(), 0, _host(table))
-    return np.array([any(w.app == "fcw" for w in snap.warnings)
-                     for snap in simulate(the_plan, _cam("ca", table))], dtype=bool)
+    return [frozenset(w.rv_id for w in snap.warnings if w.app == "fcw")
+            for snap in simulate(the_plan, _cam("ca", table))]
 
 
 def fcw_scene(table: MobilityTable) -> MobilityTable:
@@ -201,7 +204,7 @@ def lockstep_errors(tracks: Sequence[tuple[str, Track]], predictor: str, cell: C
 
 
 def cam_run(table: MobilityTable, predictor: str, cell: Cell, seed: int,
-            truth: np.ndarray | None = None, *, wire: bool = True,
+            truth: Sequence[frozenset[int]] | None = None, *, wire: bool = True,
             pte: bool = True) -> CellResult:
     """Run ``table`` through ``cell``'s channel into the CA-TC with ``predictor`` and score
     it as ``captures score`` scores a live capture: PTE of every tracked RV at every tick,
@@ -245,19 +248,18 @@ def cam_run(table: MobilityTable, predictor: str, cell: Cell, seed: int,
                 ey.append(np.interp(t, tt[0], tt[2]))
             if keep:
                 errors.append(np.hypot(snap.x[keep] - np.array(ex), snap.y[keep] - np.array(ey)))
-        warn = any(w.app == "fcw" for w in snap.warnings)
         events += sum(1 for e in snap.events if e.app == "fcw" and e.kind == "start")
-        if k < len(truth):
-            gt = bool(truth[k])
-            conf["tp" if warn and gt else "tn" if not warn and not gt
-                 else "fp" if warn else "fn"] += 1
+        if k < len(truth):  # vehicle by vehicle, as captures score counts
+            warned = [w.rv_id for w in snap.warnings if w.app == "fcw"]
+            for key, n in zip(KEYS, tick_confusion(truth[k], warned), strict=True):
+                conf[key] += n
     pte = np.concatenate(errors).astype(np.float32) if errors else np.zeros(0, np.float32)
     return CellResult(table.name, predictor, cell, seed, pte, conf, sent, dropped, k + 1,
                       events)
 
 
 def run_cell(table: MobilityTable, predictor: str, cell: Cell, seed: int,
-             truth: np.ndarray | None = None, *, fcw: bool = True) -> CellResult:
+             truth: Sequence[frozenset[int]] | None = None, *, fcw: bool = True) -> CellResult:
     """One sweep run: PTE from :func:`track_errors` (every vehicle of the trip), FCW from
     :func:`cam_run` on the :func:`fcw_scene` (skipped when ``fcw`` is False).  ``truth``:
     :func:`truth_fcw` of the scene."""

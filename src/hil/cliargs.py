@@ -9,6 +9,7 @@ writes: nothing in :mod:`catc` does.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 
 
@@ -30,11 +31,31 @@ def make_parser(prog: str, description: str) -> tuple[Parser, argparse._SubParse
     return parser, sub
 
 
+#: Exit statuses as a shell reports a process ended by SIGINT and by SIGPIPE.
+INTERRUPTED, BROKEN_PIPE = 130, 141
+
+
 def dispatch(parser: Parser, argv: list[str] | None) -> int:
-    """Parse ``argv`` and run the chosen subcommand's ``func``; exit status 2 on bad usage."""
+    """Parse ``argv`` and run the chosen subcommand's ``func``; exit status 2 on bad usage.
+
+    Ctrl-C before a daemon has set up its own handling (or in any other command) is one
+    line and status 130; a reader that closed the pipe (``captures score | head``) ends
+    the command quietly with status 141, stdout pointed at /dev/null so that the flush
+    at exit raises nothing either."""
     try:
         args = parser.parse_args(argv)
     except UsageError as err:
         print(err, file=sys.stderr)
         return 2
-    return args.func(args)
+    try:
+        return args.func(args)
+    except KeyboardInterrupt:
+        print(f"{parser.prog}: interrupted", file=sys.stderr)
+        return INTERRUPTED
+    except BrokenPipeError:
+        import os
+
+        with contextlib.suppress(OSError, ValueError):
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+        return BROKEN_PIPE

@@ -13,8 +13,8 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
-__all__ = ["ConfigError", "add_can_arguments", "address", "merge", "percent", "run_daemon",
-           "web_address"]
+__all__ = ["ConfigError", "add_can_arguments", "address", "destination", "merge",
+           "non_negative", "percent", "positive", "run_daemon", "web_address"]
 
 
 def address(text: str) -> tuple[str, int]:
@@ -26,6 +26,41 @@ def address(text: str) -> tuple[str, int]:
     return host.strip("[]") or "127.0.0.1", int(port)
 
 
+def destination(text: str) -> tuple[str, int]:
+    """``HOST:PORT`` to send to: :func:`address` with a port from 1 (port 0 names no
+    receiver)."""
+    host, port = address(text)
+    if port == 0:
+        raise argparse.ArgumentTypeError(f"port 0 names no receiver: {text!r}")
+    return host, port
+
+
+def _finite(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if value != value or value in (float("inf"), float("-inf")):
+        raise argparse.ArgumentTypeError(f"a finite number, got {text}")
+    return value
+
+
+def positive(text: str) -> float:
+    """A finite number above 0 (durations, speeds, rates)."""
+    value = _finite(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"a number above 0, got {text}")
+    return value
+
+
+def non_negative(text: str) -> float:
+    """A finite number from 0 (waits, latencies)."""
+    value = _finite(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"a number from 0, got {text}")
+    return value
+
+
 def web_address(text: str) -> tuple[str, int]:
     """``PORT`` (on 127.0.0.1) or ``HOST:PORT``: where a web page is served."""
     return address(text if ":" in text else f"127.0.0.1:{text}")
@@ -33,7 +68,7 @@ def web_address(text: str) -> tuple[str, int]:
 
 def percent(text: str) -> float:
     """A percentage from 0 to 100 (the argparse ``type`` of ``--per``)."""
-    value = float(text)
+    value = _finite(text)
     if not 0.0 <= value <= 100.0:
         raise argparse.ArgumentTypeError(f"a percentage from 0 to 100, got {text}")
     return value

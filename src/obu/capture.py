@@ -16,7 +16,7 @@ from typing import Any
 
 from catc.bsm import BSM
 from catc.cam import MapSnapshot
-from hil.capture import JsonLines, schema, versions
+from hil.capture import JsonLines, claim, schema, versions
 
 __all__ = ["ObuCapture", "Received"]
 
@@ -33,6 +33,9 @@ class ObuCapture:
     def __init__(self, directory: Path, args: argparse.Namespace) -> None:
         self.dir = directory
         directory.mkdir(parents=True, exist_ok=True)
+        claim(directory, "obu", getattr(args, "overwrite", False))
+        self.run_id = schema.new_run_id()
+        self.started = time.time()
         self.rx = JsonLines(directory / schema.OBU_RX)
         self.ticks = JsonLines(directory / schema.OBU_TICKS)
         self.tracks = JsonLines(directory / schema.OBU_TRACKS)
@@ -50,7 +53,8 @@ class ObuCapture:
     def write_config(self, origin: list[float] | None) -> None:
         """``obu.config.json`` with the ENU origin ``[lat, lon, h]`` (None before the
         first tick)."""
-        config = schema.obu_config(self.settings, versions(), origin, time.time())
+        config = schema.obu_config(self.settings, versions(), origin, self.started,
+                                   self.run_id)
         self._replace(schema.OBU_CONFIG, json.dumps(config, indent=1, default=str))
 
     def write_origin(self, origin: list[float]) -> None:
@@ -58,6 +62,11 @@ class ObuCapture:
         if not self.origin_written:
             self.write_config(origin)
             self.origin_written = True
+
+    def write_end(self, exit: str, reason: str, **counts: int) -> None:
+        """How the run ended (``obu.end.json``, :func:`hil.capture.schema.end`)."""
+        self._replace(schema.OBU_END, json.dumps(schema.end(
+            self.run_id, exit, reason, self.started, time.time(), **counts), indent=1))
 
     def write_counters(self, counters: dict[str, Any]) -> None:
         self._replace(schema.OBU_COUNTERS, json.dumps(counters, indent=1, sort_keys=True))

@@ -83,16 +83,21 @@ class Obu:
         decided = time.time()
         received = self.frames.received(due)
         self._outputs(snap, host, ms, decided, received)
-        if self.web is not None and (self.web.clients or self.web.polled):
-            self._publish(snap, host)
+        if self.web is not None:
+            if self.web.clients or self.web.polled:
+                self._publish(snap, host)
+            else:  # nobody looks yet: keep the tick, build its state on the first look
+                self.web.unbuilt = lambda: self._state(snap, host)
         return snap
 
     def _publish(self, snap: MapSnapshot, host: BSM) -> None:
         """The tick's state to the live view (after the step: not in its time)."""
+        self.web.publish(self._state(snap, host))
+
+    def _state(self, snap: MapSnapshot, host: BSM) -> dict[str, Any]:
         from obu.web import tick_state
 
-        panel = self.status.panel(self.cam.tentative)
-        self.web.publish(tick_state(snap, host.sec_mark, panel))
+        return tick_state(snap, host.sec_mark, self.status.panel(self.cam.tentative))
 
     def _outputs(self, snap: MapSnapshot, host: BSM, ms: float, decided: float,
                  received: list[Received]) -> None:
@@ -119,12 +124,16 @@ class Obu:
             len(self.frames.pending), self.cam.tentative, self.cam.counters,
             transport_stats, None if self.gc is None else self.gc.counters())
 
-    def close(self) -> None:
+    def close(self, exit: str = "clean", reason: str = "") -> None:
+        """Flush and close; the capture's end record says how the run ended
+        (:data:`hil.capture.schema.ENDINGS`)."""
         if self.cap is not None:
             # received, never stepped (no host frame came after them): recorded all the
             # same, so that the capture has every frame the OBU received
             for r in self.frames.unticked():
                 self.cap.message(r, "unticked")
             self.cap.close()
+            self.cap.write_end(exit, reason, ticks=self.counters["ticks"],
+                               frames=self.counters["frames"])
         if self.warn_out is not sys.stdout:
             self.warn_out.close()

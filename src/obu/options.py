@@ -8,13 +8,13 @@ import argparse
 
 from catc.predict import NAMES
 from hil.capture.schema import OBU_MBR
-from hil.config import add_can_arguments, address, web_address
+from hil.config import add_can_arguments, address, non_negative, positive, web_address
 
 __all__ = ["DEFAULTS", "add_arguments"]
 
 DEFAULTS = {
     "transport": "udp", "listen": ("127.0.0.1", 4500), "host_listen": ("127.0.0.1", 4501),
-    "predictor": "hgp", "capture": None, "duration": None, "idle_exit": None,
+    "predictor": "hgp", "capture": None, "overwrite": False, "duration": None, "idle_exit": None,
     "warnings": None, "collect_ms": 5.0, "can_interface": "virtual", "can_channel": None,
     "can_fd": False, "progress": True, "max_tracks": 1000, "verify": "off", "trust": None,
     "mbd": False, "web": None,
@@ -32,12 +32,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "vehicle's frames (default 127.0.0.1:4501)")
     p.add_argument("--predictor", choices=NAMES, help="tracking predictor (default hgp)")
     p.add_argument("--capture", metavar="DIR", help="capture directory (see --help)")
-    p.add_argument("--duration", type=float, metavar="S", help="stop after S s (wall clock)")
-    p.add_argument("--idle-exit", type=float, metavar="S",
+    p.add_argument("--overwrite", action="store_true", default=None,
+                   help="replace an OBU run already in the capture directory (refused "
+                        "without)")
+    p.add_argument("--duration", type=positive, metavar="S", help="stop after S s (wall clock)")
+    p.add_argument("--idle-exit", type=positive, metavar="S",
                    help="stop once no frame has arrived for S s (after the first)")
     p.add_argument("--warnings", metavar="FILE", help="warning events as JSON lines here "
                    "instead of stdout")
-    p.add_argument("--collect-ms", type=float, help="longest wait for the RV channel to go "
+    p.add_argument("--collect-ms", type=non_negative, help="longest wait for the RV channel to go "
                    "quiet before a step, after the frames already received are taken "
                    "(default 5)")
     p.add_argument("--max-tracks", type=int, help="most RVs tracked at once (default 1000)")

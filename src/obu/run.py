@@ -75,11 +75,17 @@ async def _open_receiver(args: argparse.Namespace) -> Receiver:
 async def serve(args: argparse.Namespace) -> dict:
     """Receive and step until stopped; returns the final counters."""
     obu = Obu(args)
-    rx = await _open_receiver(args)
+    try:
+        rx = await _open_receiver(args)
+    except BaseException as err:
+        obu.close("error", str(err))
+        raise
     stop = asyncio.Event()
+    stopped_by: list[str] = []  # the signal that stopped the run
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, stop.set)
+        loop.add_signal_handler(sig, lambda s=sig: (stopped_by.append(s.name), stop.set()))
+    ending = ("error", "")  # until the loop ends without an exception
     inbox: deque[tuple[str, bytes, float]] = deque()  # frames in arrival order
     arrived = asyncio.Event()
 
@@ -142,6 +148,15 @@ async def serve(args: argparse.Namespace) -> dict:
                     print(obu.status.line(fps, len(obu.cam)), file=sys.stderr, flush=True)
                 if obu.cap is not None:
                     obu.cap.write_counters(obu.all_counters(rx.stats))
+        ending = (("signal", stopped_by[0]) if stopped_by else
+                  ("clean", "duration" if args.duration is not None
+                   and time.monotonic() - started > args.duration else "idle"))
+    except KeyboardInterrupt:  # Ctrl-C before the handlers were set, or inside a step
+        ending = ("signal", "SIGINT")
+        raise
+    except BaseException as err:
+        ending = ("error", f"{type(err).__name__}: {err}")
+        raise
     finally:
         obu.gc.restore()  # serve() may run inside another program (the tests)
         for sig in (signal.SIGINT, signal.SIGTERM):
@@ -154,7 +169,7 @@ async def serve(args: argparse.Namespace) -> dict:
         if obu.cap is not None:
             obu.cap.write_counters(counters)
             obu.cap.flush()
-        obu.close()
+        obu.close(*ending)
     return counters
 
 

@@ -82,8 +82,18 @@ class Hub:
         #: Someone asked /api/state: states are built from then on even with no browser
         #: (before, the OBU builds none: no cost when nobody looks).
         self.polled = False
+        #: Builds the newest tick's state when nobody has looked yet (a reference to the
+        #: tick, no work): the first /api/state or browser gets it, not an empty state.
+        self.unbuilt: Callable[[], dict] | None = None
+
+    def newest(self) -> str | None:
+        """The newest state as JSON, built now if nobody had asked for it yet."""
+        if self.latest is None and self.unbuilt is not None:
+            self.publish(self.unbuilt())
+        return self.latest
 
     def publish(self, state: dict) -> None:
+        self.unbuilt = None
         self.latest = json.dumps(state, separators=(",", ":"))
         for c in self.clients:
             c.slot = self.latest
@@ -124,9 +134,10 @@ def make_app(hub: Hub | None = None, replay: Replay | None = None) -> web.Applic
             raise web.HTTPBadRequest(text="the live state takes no query")
         if hub is not None:
             hub.polled = True
-        if hub is None or hub.latest is None:
+        latest = hub.newest() if hub is not None else None
+        if latest is None:  # no tick yet
             return web.json_response({"t": None, "rvs": [], "warnings": []})
-        return web.json_response(text=hub.latest)
+        return web.json_response(text=latest)
 
     async def ticks(_request: web.Request) -> web.Response:
         if replay is None:
@@ -141,7 +152,7 @@ def make_app(hub: Hub | None = None, replay: Replay | None = None) -> web.Applic
             return sock
         client = _Client()
         hub.clients.add(client)
-        if hub.latest is not None:
+        if hub.newest() is not None:
             client.slot = hub.latest
             client.ready.set()
 

@@ -5,6 +5,8 @@
   (:func:`hil.capture.schema.rve_config`), written when the capture opens;
 * ``rve.truth.jsonl``: the true state of every vehicle at every 10 Hz sample
   (:func:`hil.capture.schema.truth`), up to the last host tick sent;
+* ``rve.end.json``: how the run ended (:func:`hil.capture.schema.end`), written as it
+  ends; missing when the RVE was killed;
 * ``rve.schedule.jsonl``: every scheduled message with its channel decision and, when
   sent, its wall-clock send time and lateness (:func:`hil.capture.schema.scheduled`,
   :func:`hil.capture.schema.sent`);
@@ -29,7 +31,16 @@ import numpy as np
 from catc.channel import CAUSES
 from catc.j2735.ieee1609 import ETHERTYPE_WSMP
 from catc.replay import Plan, temp_id
-from hil.capture import JsonLines, PcapngWriter, can_log, ethernet, schema, udp_packet, versions
+from hil.capture import (
+    JsonLines,
+    PcapngWriter,
+    can_log,
+    claim,
+    ethernet,
+    schema,
+    udp_packet,
+    versions,
+)
 from rve.framing import framing_of
 
 __all__ = ["Capture", "can_channel"]
@@ -52,6 +63,9 @@ class Capture:
     def __init__(self, directory: Path, the_plan: Plan, args: argparse.Namespace) -> None:
         self.dir = directory
         directory.mkdir(parents=True, exist_ok=True)
+        claim(directory, "rve", bool(getattr(args, "overwrite", False)))
+        self.run_id = schema.new_run_id()
+        self.started = time.time()
         self.schedule = JsonLines(directory / schema.RVE_SCHEDULE)
         self.truth = JsonLines(directory / schema.RVE_TRUTH)
         self.wsmp = framing_of(args) == "wsmp"  # the pcapng gets Ethernet/0x88DC frames
@@ -67,7 +81,7 @@ class Capture:
         config = schema.rve_config(
             schema.settings(args), versions(), (table.name, table.kind, table.origin),
             the_plan.host_id, {v: temp_id(v) for v in the_plan.vehicles},
-            dataclasses.asdict(the_plan.config), the_plan.seed, time.time())
+            dataclasses.asdict(the_plan.config), the_plan.seed, self.started, self.run_id)
         with open(directory / schema.RVE_CONFIG, "w", encoding="utf-8") as f:
             json.dump(config, f, indent=1, default=str)
         self._truth_pos = {v: 0 for v in the_plan.vehicles}
@@ -138,6 +152,12 @@ class Capture:
             self.pcap.flush()
         if self.canlog is not None:
             self.canlog.flush()
+
+    def write_end(self, exit: str, reason: str, **counts: int) -> None:
+        """How the run ended (``rve.end.json``, :func:`hil.capture.schema.end`)."""
+        with open(self.dir / schema.RVE_END, "w", encoding="utf-8") as f:
+            json.dump(schema.end(self.run_id, exit, reason, self.started, time.time(),
+                                 **counts), f, indent=1)
 
     def close(self) -> None:
         self.schedule.close()

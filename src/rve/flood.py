@@ -52,15 +52,15 @@ def _mix(text: str) -> dict[str, float]:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from hil.config import address, percent
+    from hil.config import destination, percent, positive
 
     p.add_argument("--dataset", default="scenario:highway-braking",
                    help="the RVE's dataset (copies are of its frames)")
     p.add_argument("--trip", help="the RVE's trip")
-    p.add_argument("--to", type=address, required=True, help="UDP HOST:PORT to flood")
-    p.add_argument("--rate", type=float, default=2000.0, help="datagrams/s (default 2000)")
-    p.add_argument("--duration", type=float, default=10.0, help="seconds (default 10)")
-    p.add_argument("--speed", type=float, default=1.0, help="the RVE's replay speed")
+    p.add_argument("--to", type=destination, required=True, help="UDP HOST:PORT to flood")
+    p.add_argument("--rate", type=positive, default=2000.0, help="datagrams/s (default 2000)")
+    p.add_argument("--duration", type=positive, default=10.0, help="seconds (default 10)")
+    p.add_argument("--speed", type=positive, default=1.0, help="the RVE's replay speed")
     p.add_argument("--per", type=percent, default=0.0, help="the RVE's PER, %%")
     p.add_argument("--seed", type=int, default=0, help="the RVE's seed")
     p.add_argument("--flood-seed", type=int, default=1, help="seed of the garbage")

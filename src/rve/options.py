@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import argparse
 
-from hil.config import add_can_arguments, address, percent
+from hil.config import add_can_arguments, destination, non_negative, percent, positive
 
 __all__ = ["DEFAULTS", "add_arguments"]
 
@@ -17,7 +17,7 @@ __all__ = ["DEFAULTS", "add_arguments"]
 DEFAULTS = {
     "dataset": "scenario:highway-braking", "transport": "udp", "to": ("127.0.0.1", 4500),
     "host_to": ("127.0.0.1", 4501), "per": 0.0, "burst": 1.0, "rate": 10.0, "latency": 0.0,
-    "jitter": 0.0, "seed": 0, "speed": 1.0, "asap": False, "capture": None,
+    "jitter": 0.0, "seed": 0, "speed": 1.0, "asap": False, "capture": None, "overwrite": False,
     "duration": None, "host": None, "trip": None, "ieee1609": False, "distance": False,
     "can_interface": "virtual", "can_channel": None, "can_fd": False, "progress": True,
     "idm_host": None, "sign": None, "framing": None, "attack": None,
@@ -36,25 +36,28 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--idm-host", metavar="LEADER", help="add a synthetic host vehicle that "
                    "follows LEADER with the IDM car-following model (catc.hostsim) and use it")
     p.add_argument("--transport", choices=("udp", "can"), help="udp (default) or can")
-    p.add_argument("--to", type=address, help="UDP HOST:PORT of the RV frames "
+    p.add_argument("--to", type=destination, help="UDP HOST:PORT of the RV frames "
                    "(default 127.0.0.1:4500)")
-    p.add_argument("--host-to", type=address, help="UDP HOST:PORT of the host "
+    p.add_argument("--host-to", type=destination, help="UDP HOST:PORT of the host "
                    "vehicle's frames (default 127.0.0.1:4501)")
     p.add_argument("--per", type=percent, help="packet error rate, %% (default 0)")
-    p.add_argument("--burst", type=float, help="mean burst length in messages; 1 = "
+    p.add_argument("--burst", type=positive, help="mean burst length in messages; 1 = "
                    "independent losses (default 1)")
-    p.add_argument("--rate", type=float, help="transmission rate, 1-10 Hz (default 10)")
-    p.add_argument("--latency", type=float, metavar="MS", help="fixed latency, ms")
-    p.add_argument("--jitter", type=float, metavar="MS", help="each frame is delayed a "
+    p.add_argument("--rate", type=positive, help="transmission rate, 1-10 Hz (default 10)")
+    p.add_argument("--latency", type=non_negative, metavar="MS", help="fixed latency, ms")
+    p.add_argument("--jitter", type=non_negative, metavar="MS", help="each frame is delayed a "
                    "further U(0, jitter) ms; reordering happens")
     p.add_argument("--distance", action="store_true", default=None,
                    help="also lose messages by HV-RV distance (catc.channel curve)")
     p.add_argument("--seed", type=int, help="seed of the loss and jitter pattern")
-    p.add_argument("--speed", type=float, help="replay speed factor (default 1 = real time)")
+    p.add_argument("--speed", type=positive, help="replay speed factor (default 1 = real time)")
     p.add_argument("--asap", action="store_true", default=None,
                    help="send as fast as possible (no pacing)")
-    p.add_argument("--duration", type=float, metavar="S", help="stop after S s of data")
+    p.add_argument("--duration", type=positive, metavar="S", help="stop after S s of data")
     p.add_argument("--capture", metavar="DIR", help="capture directory (see rve run --help)")
+    p.add_argument("--overwrite", action="store_true", default=None,
+                   help="replace an RVE run already in the capture directory (refused "
+                        "without)")
     p.add_argument("--ieee1609", action="store_true", default=None,
                    help="wrap each frame in an unsecured IEEE 1609.2 envelope "
                         "(= --framing 1609)")

@@ -71,11 +71,19 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
     attacks = attacking.attacks if attacking else None
     cap = Capture(Path(args.capture), the_plan, args) if args.capture else None
     on_frame = cap.canlog.on_message_received if cap is not None and cap.canlog else None
-    sender = await _open_sender(args, on_frame)
+    try:
+        sender = await _open_sender(args, on_frame)
+    except BaseException as err:
+        if cap is not None:
+            cap.close()
+            cap.write_end("error", str(err))
+        raise
     stop = asyncio.Event()
+    stopped_by: list[str] = []  # the signal that stopped the replay
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, stop.set)
+        loop.add_signal_handler(sig, lambda s=sig: (stopped_by.append(s.name), stop.set()))
+    ending = ("error", "")
     events = the_plan.events
     tids = [temp_id(v) for v in the_plan.vehicles]
     t0 = float(events["time"][0]) if len(events) else 0.0
@@ -137,6 +145,13 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
                 cap.write_truth(the_plan, due)
                 cap.flush()
             i = j
+        ending = ("signal", stopped_by[0]) if stopped_by else ("clean", "replayed")
+    except KeyboardInterrupt:  # Ctrl-C before the handlers were set, or inside a step
+        ending = ("signal", "SIGINT")
+        raise
+    except BaseException as err:
+        ending = ("error", f"{type(err).__name__}: {err}")
+        raise
     finally:
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.remove_signal_handler(sig)
@@ -144,6 +159,8 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
         if cap is not None:
             cap.flush()
             cap.close()
+            cap.write_end(*ending, sent=counts["sent"], dropped=counts["dropped"],
+                          host_frames=counts["host"])
         last = float(events["time"][min(i, len(events) - 1)]) if len(events) else 0.0
         progress.update(last, counts["sent"], counts["dropped"], 0.0, final=True)
     counts["interrupted"] = int(stop.is_set())
@@ -192,7 +209,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     try:
         counts = asyncio.run(replay(args, the_plan, signer=signer))
-    except TransportError as err:
+    except (TransportError, OSError) as err:  # OSError: the capture directory
         print(f"rve run: {err}", file=sys.stderr)
         return 2
     print(json.dumps({"sent": counts["sent"], "dropped": counts["dropped"],

@@ -22,11 +22,12 @@ from hil.capture.writers import (
     JsonLines,
     PcapngWriter,
     can_log,
+    claim,
     ethernet,
     udp_packet,
     versions,
 )
 
 __all__ = ["CanLogs", "Capture", "CaptureError", "JsonLines", "PcapngWriter", "can_log",
-           "clock_offset", "ethernet", "read_capture", "read_json", "read_lines", "schema",
+           "claim", "clock_offset", "ethernet", "read_capture", "read_json", "read_lines", "schema",
            "truth_in_frame", "udp_packet", "versions"]

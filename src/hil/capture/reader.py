@@ -20,12 +20,14 @@ from catc.bsm import sec_mark
 from catc.geo import EnuFrame
 from hil.capture.schema import (
     OBU_CONFIG,
+    OBU_END,
     OBU_EVENTS,
     OBU_MBR,
     OBU_RX,
     OBU_TICKS,
     OBU_TRACKS,
     RVE_CONFIG,
+    RVE_END,
     RVE_SCHEDULE,
     RVE_TRUTH,
 )
@@ -76,6 +78,8 @@ class Capture:
     events: list[dict[str, Any]]
     rx: list[dict[str, Any]] | None  # None when not read
     mbr: list[dict[str, Any]] | None  # None when the OBU ran without --mbd
+    rve_end: dict[str, Any] | None = None  # None: no end record (killed, or before 2026-11-27)
+    obu_end: dict[str, Any] | None = None
 
 
 def read_capture(directory: Path, rx: bool = True) -> Capture:
@@ -99,7 +103,9 @@ def read_capture(directory: Path, rx: bool = True) -> Capture:
         tracks=read_lines(directory / OBU_TRACKS),
         events=optional(OBU_EVENTS) or [],
         rx=read_lines(directory / OBU_RX) if rx else None,
-        mbr=optional(OBU_MBR))
+        mbr=optional(OBU_MBR),
+        rve_end=read_json(directory / RVE_END) if (directory / RVE_END).is_file() else None,
+        obu_end=read_json(directory / OBU_END) if (directory / OBU_END).is_file() else None)
     if not cap.ticks:
         raise CaptureError(f"{directory}: the OBU recorded no tick")
     if cap.obu_config.get("origin") is None:

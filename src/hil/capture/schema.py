@@ -16,8 +16,11 @@ file                     writer  one record per ...
                                  sent (:func:`scheduled`)
 ``rve.frames.pcapng``    RVE     frame sent over UDP (or WSMP in Ethernet II)
 ``rve.frames.asc/.log``  RVE     CAN frame sent (ASC and candump log)
+``rve.end.json``         RVE     run: how it ended, written as it ends (:func:`end`); none
+                                 when the RVE was killed
 ``obu.config.json``      OBU     run: settings, versions, ENU origin (rewritten once it is known;
                                  :func:`obu_config`)
+``obu.end.json``         OBU     run: how it ended (:func:`end`); none when it was killed
 ``obu.counters.json``    OBU     run: every counter (rewritten every second and at the end)
 ``obu.rx.jsonl``         OBU     frame received, with what became of it (:func:`received`)
 ``obu.ticks.jsonl``      OBU     tick: host state, step time, warnings (:func:`tick`)
@@ -36,15 +39,43 @@ than any latency.
 
 from __future__ import annotations
 
+import uuid
 from typing import Any
 
 from catc.bsm import msg_cnt, sec_mark
 
 __all__ = [
-    "OBU_CONFIG", "OBU_COUNTERS", "OBU_EVENTS", "OBU_MBR", "OBU_RX", "OBU_TICKS",
-    "OBU_TRACKS", "RVE_CAN_STEM", "RVE_CONFIG", "RVE_PCAPNG", "RVE_SCHEDULE", "RVE_TRUTH",
-    "event", "hex_id", "message_key", "obu_config", "received", "received_key", "report",
-    "rve_config", "scheduled", "scheduled_key", "sent", "settings", "tick", "track_rows",
+    "ENDINGS",
+    "OBU_CONFIG",
+    "OBU_COUNTERS",
+    "OBU_END",
+    "OBU_EVENTS",
+    "OBU_MBR",
+    "OBU_RX",
+    "OBU_TICKS",
+    "OBU_TRACKS",
+    "RVE_CAN_STEM",
+    "RVE_CONFIG",
+    "RVE_END",
+    "RVE_PCAPNG",
+    "RVE_SCHEDULE",
+    "RVE_TRUTH",
+    "end",
+    "event",
+    "hex_id",
+    "message_key",
+    "new_run_id",
+    "obu_config",
+    "received",
+    "received_key",
+    "report",
+    "rve_config",
+    "scheduled",
+    "scheduled_key",
+    "sent",
+    "settings",
+    "tick",
+    "track_rows",
     "truth",
 ]
 
@@ -54,7 +85,9 @@ RVE_SCHEDULE = "rve.schedule.jsonl"
 RVE_PCAPNG = "rve.frames.pcapng"
 #: ``rve.frames.asc`` and ``rve.frames.log``
 RVE_CAN_STEM = "rve.frames"
+RVE_END = "rve.end.json"
 OBU_CONFIG = "obu.config.json"
+OBU_END = "obu.end.json"
 OBU_COUNTERS = "obu.counters.json"
 OBU_RX = "obu.rx.jsonl"
 OBU_TICKS = "obu.ticks.jsonl"
@@ -96,16 +129,16 @@ def settings(args: Any) -> dict[str, Any]:
 
 def rve_config(settings: dict[str, Any], versions: dict[str, str], dataset: tuple[str, str, Any],
                host: str, ids: dict[str, int], channel: dict[str, Any], seed: int,
-               started_unix: float) -> dict[str, Any]:
+               started_unix: float, run_id: str) -> dict[str, Any]:
     """The RVE's run (``rve.config.json``): its :func:`settings` and software
     ``versions``, the dataset's (name, kind, ENU origin), the host vehicle, every
-    vehicle's TemporaryID (``ids``), the channel model's settings and seed, and when the
-    run started (wall clock)."""
+    vehicle's TemporaryID (``ids``), the channel model's settings and seed, when the run
+    started (wall clock) and its ``run_id`` (:func:`new_run_id`; the end record's too)."""
     name, kind, origin = dataset
     return {"settings": settings, "versions": versions,
             "dataset": {"name": name, "kind": kind, "origin": origin}, "host": host,
             "vehicles": {v: hex_id(tid) for v, tid in ids.items()}, "channel": channel,
-            "seed": seed, "started_unix": started_unix}
+            "seed": seed, "started_unix": started_unix, "run_id": run_id}
 
 
 def truth(vehicle: str, temp_id: int, index: int, t: float, lat: float, lon: float,
@@ -145,13 +178,37 @@ def sent(record: dict[str, Any], sent_unix: float, late_s: float, octets: int
 # --- the OBU's records ------------------------------------------------------------------
 
 def obu_config(settings: dict[str, Any], versions: dict[str, str],
-               origin: list[float] | None, started_unix: float) -> dict[str, Any]:
+               origin: list[float] | None, started_unix: float, run_id: str
+               ) -> dict[str, Any]:
     """The OBU's run (``obu.config.json``): its :func:`settings`, the software's versions
     (:func:`hil.capture.writers.versions`), the ENU origin ``[lat, lon, h]`` of its map
-    (None until its first tick; the file is rewritten once it is known) and the wall-clock
-    time the file was written."""
+    (None until its first tick; the file is rewritten once it is known), when the run
+    started (wall clock) and its ``run_id``."""
     return {"settings": settings, "versions": versions, "origin": origin,
-            "started_unix": started_unix}
+            "started_unix": started_unix, "run_id": run_id}
+
+
+def new_run_id() -> str:
+    """A run's id: 32 random hex digits, in its config and its end record."""
+    return uuid.uuid4().hex
+
+
+#: How a daemon's run ended (:func:`end`): it finished its job (the replay sent, the OBU
+#: idle or at its --duration), a signal stopped it (SIGTERM, SIGINT), or an error did.
+#: A killed daemon writes nothing: its end file is missing.
+ENDINGS = ("clean", "signal", "error")
+
+
+def end(run_id: str, exit: str, reason: str, started_unix: float, ended_unix: float,
+        **counts: int) -> dict[str, Any]:
+    """How a daemon's run ended (``rve.end.json``, ``obu.end.json``): its ``run_id`` (as in
+    its config), ``exit`` one of :data:`ENDINGS`, the ``reason`` in words (the signal's
+    name, the error's message), when it started and ended, and its totals (``counts``:
+    ticks, frames sent...)."""
+    if exit not in ENDINGS:
+        raise ValueError(f"exit {exit!r}: not one of {ENDINGS}")
+    return {"run_id": run_id, "exit": exit, "reason": reason, "started_unix": started_unix,
+            "ended_unix": ended_unix, **counts}
 
 
 def received(rx_unix: float, channel: str, data: bytes, status: str, *,

@@ -28,8 +28,28 @@ import struct
 from pathlib import Path
 from typing import IO, Any
 
-__all__ = ["CanLogs", "JsonLines", "PcapngWriter", "can_log", "ethernet", "udp_packet",
-           "versions"]
+__all__ = ["CanLogs", "JsonLines", "PcapngWriter", "can_log", "claim", "ethernet",
+           "udp_packet", "versions"]
+
+_DAEMONS = {"rve": "an RVE", "obu": "an OBU"}
+
+
+def claim(directory: Path, daemon: str, overwrite: bool) -> None:
+    """Make ``directory`` (which exists) the capture of a new run of ``daemon`` (``rve``
+    or ``obu``).  Where it already holds that daemon's files (``rve.*``, ``obu.*``: an
+    earlier run, whose JSON lines the new one would append to) it raises
+    :class:`FileExistsError` with a one-line message, or with ``overwrite`` deletes them.
+    The other daemon's files are left alone: the RVE and the OBU share the directory."""
+    own = sorted(p for p in directory.glob(f"{daemon}.*") if p.is_file())
+    if not own:
+        return
+    if not overwrite:
+        raise FileExistsError(
+            f"{directory} already holds {_DAEMONS[daemon]} run ({own[0].name}"
+            f"{f' and {len(own) - 1} more' if len(own) > 1 else ''}): give a new directory, "
+            "or --overwrite to replace that run")
+    for path in own:
+        path.unlink()
 
 
 def versions() -> dict[str, str]:

@@ -55,6 +55,7 @@ import time
 from collections import deque
 
 from catc.predict import check
+from hil.capture import schema
 from hil.gcpolicy import GcPolicy
 from hil.transport import Receiver, TransportError, open_receiver
 from obu.daemon import Obu
@@ -151,11 +152,8 @@ async def serve(args: argparse.Namespace) -> dict:
         ending = (("signal", stopped_by[0]) if stopped_by else
                   ("clean", "duration" if args.duration is not None
                    and time.monotonic() - started > args.duration else "idle"))
-    except KeyboardInterrupt:  # Ctrl-C before the handlers were set, or inside a step
-        ending = ("signal", "SIGINT")
-        raise
     except BaseException as err:
-        ending = ("error", f"{type(err).__name__}: {err}")
+        ending = schema.failed(err)
         raise
     finally:
         obu.gc.restore()  # serve() may run inside another program (the tests)

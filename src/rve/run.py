@@ -38,6 +38,7 @@ from typing import Any
 
 from catc.channel import ChannelConfig
 from catc.replay import Plan, plan, temp_id
+from hil.capture import schema
 from hil.datasets import load_table
 from hil.pacing import Pacer
 from rve.attacking import Attacking
@@ -146,11 +147,8 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
                 cap.flush()
             i = j
         ending = ("signal", stopped_by[0]) if stopped_by else ("clean", "replayed")
-    except KeyboardInterrupt:  # Ctrl-C before the handlers were set, or inside a step
-        ending = ("signal", "SIGINT")
-        raise
     except BaseException as err:
-        ending = ("error", f"{type(err).__name__}: {err}")
+        ending = schema.failed(err)
         raise
     finally:
         for sig in (signal.SIGINT, signal.SIGTERM):

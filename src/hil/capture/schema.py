@@ -199,6 +199,15 @@ def new_run_id() -> str:
 ENDINGS = ("clean", "signal", "error")
 
 
+def failed(err: BaseException) -> tuple[str, str]:
+    """``(exit, reason)`` of a run that an exception ended: Ctrl-C (``KeyboardInterrupt``,
+    before a daemon's own handlers or inside a step) is the signal SIGINT, anything else
+    an error named by its type and message."""
+    if isinstance(err, KeyboardInterrupt):
+        return "signal", "SIGINT"
+    return "error", f"{type(err).__name__}: {err}"
+
+
 def end(run_id: str, exit: str, reason: str, started_unix: float, ended_unix: float,
         **counts: int) -> dict[str, Any]:
     """How a daemon's run ended (``rve.end.json``, ``obu.end.json``): its ``run_id`` (as in

@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from catc.apps.verdict import KEYS, tick_confusion
+from catc.apps.verdict import KEYS, Confusion, by_app
 from catc.channel import ChannelConfig
 from catc.mobility import MobilityTable, Track
 
@@ -232,7 +232,7 @@ def cam_run(table: MobilityTable, predictor: str, cell: Cell, seed: int,
         x, y, _ = cam.frame.to_enu(tr.lat, tr.lon, 0.0)
         truth_tracks[temp_id(v)] = (tr.t, np.atleast_1d(x), np.atleast_1d(y))
     errors: list[np.ndarray] = []
-    conf = dict.fromkeys(("tp", "tn", "fp", "fn"), 0)
+    confusion = Confusion(("fcw",))
     events = 0
     k = -1
     for k, snap in enumerate(simulate(the_plan, cam, wire=wire)):
@@ -250,12 +250,10 @@ def cam_run(table: MobilityTable, predictor: str, cell: Cell, seed: int,
                 errors.append(np.hypot(snap.x[keep] - np.array(ex), snap.y[keep] - np.array(ey)))
         events += sum(1 for e in snap.events if e.app == "fcw" and e.kind == "start")
         if k < len(truth):  # vehicle by vehicle, as captures score counts
-            warned = [w.rv_id for w in snap.warnings if w.app == "fcw"]
-            for key, n in zip(KEYS, tick_confusion(truth[k], warned), strict=True):
-                conf[key] += n
+            confusion.add({"fcw": truth[k]}, by_app((w.app, w.rv_id) for w in snap.warnings))
     pte = np.concatenate(errors).astype(np.float32) if errors else np.zeros(0, np.float32)
-    return CellResult(table.name, predictor, cell, seed, pte, conf, sent, dropped, k + 1,
-                      events)
+    return CellResult(table.name, predictor, cell, seed, pte, confusion.counts["fcw"], sent,
+                      dropped, k + 1, events)
 
 
 def run_cell(table: MobilityTable, predictor: str, cell: Cell, seed: int,
@@ -264,7 +262,7 @@ def run_cell(table: MobilityTable, predictor: str, cell: Cell, seed: int,
     :func:`cam_run` on the :func:`fcw_scene` (skipped when ``fcw`` is False).  ``truth``:
     :func:`truth_fcw` of the scene."""
     pte, sent, dropped = track_errors(table, predictor, cell, seed)
-    conf = dict.fromkeys(("tp", "tn", "fp", "fn"), 0)
+    conf = dict.fromkeys(KEYS, 0)
     ticks = events = 0
     if fcw:
         scene = fcw_scene(table)
@@ -320,7 +318,7 @@ def pool(dataset: str, results: Iterable[CellResult], trips: int | None = None) 
     # Sort for a result independent of completion order (percentiles are anyway).
     results.sort(key=lambda r: (r.trip, r.seed))
     e = np.concatenate([r.pte for r in results]).astype(np.float64)
-    conf = {k: sum(r.fcw[k] for r in results) for k in ("tp", "tn", "fp", "fn")}
+    conf = {k: sum(r.fcw[k] for r in results) for k in KEYS}
     total = sum(conf.values())
     return Row(
         dataset=dataset, predictor=first.predictor, per=round(100 * first.cell.per, 6),

@@ -79,7 +79,7 @@ async def serve(args: argparse.Namespace) -> dict:
     try:
         rx = await _open_receiver(args)
     except BaseException as err:
-        obu.close("error", str(err))
+        obu.close(*schema.failed(err))
         raise
     stop = asyncio.Event()
     stopped_by: list[str] = []  # the signal that stopped the run
@@ -109,12 +109,15 @@ async def serve(args: argparse.Namespace) -> dict:
     obu.gc = GcPolicy()  # start-up done: freeze it; collections after ticks only
     started = time.monotonic()
     last_status, frames_at_status = started, 0
+    done = "stopped"  # why the loop ended, when no signal did
     try:
         while not stop.is_set():
             if args.duration is not None and time.monotonic() - started > args.duration:
+                done = "duration"
                 break
             if args.idle_exit is not None and obu.counters["frames"] \
                     and time.monotonic() - obu.last_frame > args.idle_exit:
+                done = "idle"
                 break
             if not inbox:
                 arrived.clear()
@@ -149,9 +152,7 @@ async def serve(args: argparse.Namespace) -> dict:
                     print(obu.status.line(fps, len(obu.cam)), file=sys.stderr, flush=True)
                 if obu.cap is not None:
                     obu.cap.write_counters(obu.all_counters(rx.stats))
-        ending = (("signal", stopped_by[0]) if stopped_by else
-                  ("clean", "duration" if args.duration is not None
-                   and time.monotonic() - started > args.duration else "idle"))
+        ending = ("signal", stopped_by[0]) if stopped_by else ("clean", done)
     except BaseException as err:
         ending = schema.failed(err)
         raise

@@ -77,7 +77,7 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
     except BaseException as err:
         if cap is not None:
             cap.close()
-            cap.write_end("error", str(err))
+            cap.write_end(*schema.failed(err))
         raise
     stop = asyncio.Event()
     stopped_by: list[str] = []  # the signal that stopped the replay

@@ -62,6 +62,7 @@ __all__ = [
     "RVE_TRUTH",
     "end",
     "event",
+    "failed",
     "hex_id",
     "message_key",
     "new_run_id",

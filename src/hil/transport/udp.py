@@ -171,13 +171,10 @@ _SO_TIMESTAMPNS = 35
 _TIMESPEC = struct.Struct("@ll")
 
 
-def _stamp_arrivals(sock: socket.socket) -> bool:
-    """Ask the kernel to stamp ``sock``'s datagrams on arrival; False where it cannot."""
-    try:
+def _stamp_arrivals(sock: socket.socket) -> None:
+    """Ask the kernel to stamp ``sock``'s datagrams on arrival (not where it cannot)."""
+    with contextlib.suppress(OSError):
         sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
-    except OSError:
-        return False
-    return True
 
 
 class UdpReceiver(Receiver):
@@ -204,7 +201,8 @@ class UdpReceiver(Receiver):
         self._start_queue()
         self._closed = False
         self._loop: asyncio.AbstractEventLoop | None = None
-        self._stamped = all([_stamp_arrivals(s) for s in socks.values()])
+        for sock in socks.values():
+            _stamp_arrivals(sock)  # where it cannot, arrivals are in the order read
         self._ancillary = socket.CMSG_SPACE(_TIMESPEC.size)
         self.stats = {"frames": 0, "bytes": 0, "rv": 0, "host": 0, "oversized": 0,
                       "errors": 0, "rcvbuf": rcvbuf}
@@ -241,13 +239,14 @@ class UdpReceiver(Receiver):
             except OSError as exc:
                 _count_error(self.stats, exc)
                 return
-            arrival = time.time()
+            arrival = None
             for level, kind, value in ancdata:
                 if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS \
                         and len(value) >= _TIMESPEC.size:
                     sec, nsec = _TIMESPEC.unpack_from(value)
                     arrival = sec + nsec * 1e-9
-            batch.append((arrival, len(batch), channel, data))
+            batch.append((time.time() if arrival is None else arrival, len(batch), channel,
+                          data))
 
     def waiting(self) -> bool:
         """Also True while a datagram sits in a socket's kernel buffer, not yet read by

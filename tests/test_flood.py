@@ -2,7 +2,9 @@
 random bytes, oversize datagrams and bit-flipped, truncated copies of the host's and the
 RVs' real frames while ``rve run`` replays the built-in scenario; the OBU's warnings, FCW
 accuracy and per-RV PTE95 equal those of the same run without the flood, and its counters
-account for every datagram."""
+account for every datagram.  Issue 27's: the same flood at the host port changes nothing
+either (the host channel believes only the host's own, plausible frames:
+:class:`obu.host.HostGate`)."""
 
 from __future__ import annotations
 
@@ -13,6 +15,7 @@ import sys
 import pytest
 
 from hil.transport.udp import free_ports
+from obu.host import REASONS
 from tests.test_obu import finish, rve, score, start_obu
 
 PY = sys.executable
@@ -26,15 +29,23 @@ def _dataset() -> str:
     return "scenario:highway-braking"
 
 
-def _run(tmp, dataset: str, flood: bool) -> tuple[dict, dict, dict | None]:
+def _run(tmp, dataset: str, flood: bool, port: int = 0) -> tuple[dict, dict, dict | None]:
+    """A run of ``dataset``, flooded (or not) at the RV port (``port`` 0) or the host's
+    (1): its score, counters and what the flood sent."""
+    tmp.mkdir()
     ports = free_ports()
     obu = start_obu(tmp, ports, "--predictor", "hgp")
     flooder = None
+    # at the host port, copy only frames the RVE sends (--until its --duration), and only
+    # well after it sent them (--lag 12 data s: 1.5 s at speed 8), whichever process
+    # starts first: the copy of a frame not yet sent, or never sent, with a bit flipped
+    # where it does not matter, is the host's own frame, and it is believed
+    host = ("--lag", "12", "--until", RUN[-1]) if port else ()
     if flood:  # 30 s of data at speed 8: 4 s; the flood runs a little longer
         flooder = subprocess.Popen(
             [PY, "-m", "rve.cli", "flood", "--dataset", dataset, "--to",
-             f"127.0.0.1:{ports[0]}", "--rate", "2000", "--duration", "5", "--per", "50",
-             "--seed", "7", "--speed", "8"], stdout=subprocess.PIPE, text=True)
+             f"127.0.0.1:{ports[port]}", "--rate", "2000", "--duration", "5", "--per", "50",
+             "--seed", "7", "--speed", "8", *host], stdout=subprocess.PIPE, text=True)
     summary = rve(ports, "--dataset", dataset, *RUN, "--capture", str(tmp))
     flood_out = None
     if flooder is not None:
@@ -46,24 +57,35 @@ def _run(tmp, dataset: str, flood: bool) -> tuple[dict, dict, dict | None]:
     return score(tmp), counters | {"rve_sent": summary["sent"]}, flood_out
 
 
-@pytest.mark.slow
-def test_a_flood_of_garbage_changes_nothing_and_is_accounted_for(tmp_path):
-    dataset = _dataset()
-    (tmp_path / "clean").mkdir()
-    (tmp_path / "flood").mkdir()
-    clean, _, _ = _run(tmp_path / "clean", dataset, flood=False)
-    flooded, c, sent = _run(tmp_path / "flood", dataset, flood=True)
-    assert sent["datagrams"] > 8_000 and sent["sent"]["copy"] > 2_500
-    # the clean run warns (FCW on the braking leader), so the comparison can fail
-    assert clean["warnings"].get("fcw", 0) >= 1 and clean["fcw"]["tp"] > 0, clean["warnings"]
-    # nothing the OBU decided changed
+@pytest.fixture(scope="module")
+def clean(tmp_path_factory) -> tuple[dict, dict]:
+    """The run without a flood: its score and counters."""
+    score_, counters, _ = _run(tmp_path_factory.mktemp("flood") / "clean", _dataset(),
+                               flood=False)
+    # the clean run warns (FCW on the braking leader), so the comparisons can fail
+    assert score_["warnings"].get("fcw", 0) >= 1 and score_["fcw"]["tp"] > 0, \
+        score_["warnings"]
+    return score_, counters
+
+
+def _same_decisions(flooded: dict, clean: dict) -> None:
+    """Nothing the OBU decided changed."""
     key = lambda e: (e["app"], e["kind"], e["rv"], e["t"])  # noqa: E731
     assert sorted(map(key, flooded["events"])) == sorted(map(key, clean["events"]))
     assert flooded["fcw"] == clean["fcw"]
     assert flooded["fcw_accuracy"] == clean["fcw_accuracy"]
+    assert flooded["apps"] == clean["apps"]
     assert flooded["pte95_per_rv"] == clean["pte95_per_rv"]
     assert flooded["pte95_m"] == clean["pte95_m"]
     assert flooded["phantom"]["tracks"] == 0 and flooded["phantom"]["warnings"] == 0
+
+
+@pytest.mark.slow
+def test_a_flood_of_garbage_changes_nothing_and_is_accounted_for(tmp_path, clean):
+    dataset = _dataset()
+    flooded, c, sent = _run(tmp_path / "flood", dataset, flood=True)
+    assert sent["datagrams"] > 8_000 and sent["sent"]["copy"] > 2_500
+    _same_decisions(flooded, clean[0])
     # every datagram is accounted for: at the socket, then by the decoder, then the CAM
     assert c["transport_rv"] + c["transport_oversized"] == sent["datagrams"] + c["rve_sent"]
     assert c["transport_oversized"] == sent["sent"]["oversize"]
@@ -76,3 +98,24 @@ def test_a_flood_of_garbage_changes_nothing_and_is_accounted_for(tmp_path):
                     "accepted")
     assert cam["received"] == sum(cam[k] for k in dispositions)
     assert cam["self"] > 0 and cam["shadow"] + cam["self"] > 0
+
+
+@pytest.mark.slow
+def test_a_flood_at_the_host_port_changes_nothing(tmp_path, clean):
+    """Issue 27: corrupted copies at the host port once drove the OBU's clock to 35,364 s
+    in a 440 s run.  Now its ticks, warnings, FCW and PTE95 are the clean run's, and every
+    host frame it did not believe is counted by reason."""
+    flooded, c, sent = _run(tmp_path / "flood", _dataset(), flood=True, port=1)
+    assert sent["datagrams"] > 8_000 and sent["sent"]["copy"] > 2_500
+    _same_decisions(flooded, clean[0])
+    assert c["ticks"] == clean[1]["ticks"]
+    # the copies that decode: other vehicles' frames, and the host's own from the past,
+    # some with a bit flipped in their time
+    from_past = c.get("host_stale", 0) + c.get("host_clock_jump", 0)
+    assert c["host_foreign_id"] > 100 and from_past > 20, c
+    reasons = sum(c.get(f"host_{r}", 0) for r in (*REASONS, "backwards"))
+    assert c["host_rejected"] == reasons and c.get("host_backwards", 0) == 0
+    # every datagram at the host port: a tick, not believed, or garbage (the last believed
+    # frame may be waiting for its tick when the run ends)
+    told = c["ticks"] + c["host_rejected"] + c["decode_errors"]
+    assert 0 <= c["frames_host"] - told <= 1, c

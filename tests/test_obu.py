@@ -249,6 +249,7 @@ class _Loop:
     def __init__(self, rule: TickRule, socket_buffer: list[str], handle_s: float) -> None:
         self.rule, self.buffer, self.handle_s = rule, list(socket_buffer), handle_s
         self.now, self.queue, self.taken = 0.0, [], []
+        self.next_host = False  # a believed host frame ended the collection
 
     def collect(self) -> list[str]:
         """Collect a tick's frames from a host frame at the current time; what it took."""
@@ -256,9 +257,14 @@ class _Loop:
         action = WAIT
         while action is not STEP:
             if action is TAKE:
+                frame = self.queue.pop(0)
+                if frame == "host":  # this fake's host gate believes every host frame
+                    self.next_host = True
+                    action = self.rule.next_host()
+                    continue
                 self.now += self.handle_s  # handling one RV frame takes this long
                 self.rule.rv_frame(self.now)
-                self.taken.append(self.queue.pop(0))
+                self.taken.append(frame)
             else:
                 self.now += 1e-5
                 if self.buffer:
@@ -275,7 +281,7 @@ def test_the_tick_rule_takes_every_frame_that_reached_the_receiver_first():
     are taken before the step; the next host frame stops the collection."""
     loop = _Loop(TickRule(collect_ms=5.0), ["rv"] * 10 + ["host", "rv"], handle_s=0.003)
     assert loop.collect() == ["rv"] * 10
-    assert loop.queue == ["host"] and loop.buffer == ["rv"]
+    assert loop.next_host and loop.queue == [] and loop.buffer == ["rv"]
     assert loop.now < DRAIN_S
 
 
@@ -308,7 +314,8 @@ def test_the_tick_rule_stops_at_collect_ms_and_at_the_next_host_frame():
         assert rule.next(2.0 + 0.0009 * k, None, False) is WAIT
     assert rule.next(2.005, None, False) is STEP  # --collect-ms is over
     rule.host_frame(2.1)
-    assert rule.next(2.1, "host", True) is STEP  # the next host frame, whatever waits
+    assert rule.next(2.1, "host", True) is TAKE  # a host frame: is it believed?
+    assert rule.next_host() is STEP  # it is: the next tick, whatever waits
     rule.host_frame(2.2)
     assert rule.next(2.2 + DRAIN_S - 1e-6, None, True) is WAIT  # still draining
     assert rule.next(2.2 + DRAIN_S, None, True) is STEP

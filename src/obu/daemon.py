@@ -47,6 +47,7 @@ class Obu:
         self.frames = Frames(args, self.counters, self.log, self.clock, self.cap,
                              self.cam.drop)
         self.rule = TickRule(args.collect_ms)
+        self.host_arrival = 0.0  # the ticking host frame's arrival (unix s)
         self.last_frame = time.monotonic()
         self.web: Any = None  # the live view's hub (obu.web.Hub) when --web is on
 
@@ -60,12 +61,20 @@ class Obu:
             self.rule.rv_frame(self.last_frame)
         return self.frames.take(channel, data, rx_unix)
 
+    def begin(self, host: BSM) -> None:
+        """Host frame ``host`` (believed: :meth:`frame` returned it) starts its tick:
+        collect its frames (:mod:`obu.tick`), then :meth:`tick`."""
+        self.host_arrival = self.frames.start_tick(host)
+        self.rule.host_frame(time.monotonic())
+
     def tick(self, host: BSM) -> MapSnapshot | None:
-        """Step the CAM at host frame ``host`` (:mod:`obu.tick`)."""
-        if host.sec_mark is None or host.lat is None or host.lon is None:
-            self.counters["host_incomplete"] += 1
-            self.log("host", "a host frame without time or position: no tick")
-            return None
+        """Step the CAM at host frame ``host`` (:mod:`obu.tick`), after :meth:`begin`.
+
+        A tick misses its deadline (``deadline_misses``) when its step takes longer than
+        the tick period (``deadline_misses_step``) or when it is decided more than a tick
+        period after its host frame arrived (``deadline_misses_late``: the OBU is behind,
+        its data older than the deadline).  The lag from each message's arrival to the
+        decision is kept (:class:`obu.status.Lags`)."""
         now = self.clock(host.sec_mark)
         due = self.frames.due(now, self.cam.config.max_future_s)
         t0 = time.perf_counter()
@@ -73,15 +82,23 @@ class Obu:
             snap = self.cam.step(now, host, due)
         except ValueError as err:  # time going backwards on the host channel
             self.counters["host_rejected"] += 1
+            self.counters["host_backwards"] += 1
             self.log("host", f"host frame rejected: {err}")
             return None
         ms = (time.perf_counter() - t0) * 1000.0
         self.status.step_ms.append(ms)
         self.counters["ticks"] += 1
-        if ms > TICK_S * 1000.0:
-            self.counters["deadline_misses"] += 1
         decided = time.time()
+        slow = ms > TICK_S * 1000.0
+        late = decided - self.host_arrival > TICK_S
+        self.counters["deadline_misses_step"] += slow
+        self.counters["deadline_misses_late"] += late
+        self.counters["deadline_misses"] += slow or late
         received = self.frames.received(due)
+        lags = [(decided - rx) * 1000.0 for _, rx, _, _ in received if rx is not None]
+        self.status.lag.add(lags)
+        self.status.lag_recent.add(lags)
+        self.status.host_lag.add([(decided - self.host_arrival) * 1000.0])
         self._outputs(snap, host, ms, decided, received)
         if self.web is not None:
             if self.web.clients or self.web.polled:

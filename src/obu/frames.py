@@ -12,6 +12,10 @@ checked for misbehavior, counted, and an RV message queued for its tick.
   frame's record; ``enforce`` drops a frame that fails (status ``rejected``), ``log``
   tracks it anyway.  Host frames are not verified (they are the host's own state, not
   radio traffic).
+* The host channel (:class:`obu.host.HostGate`): a host frame is believed only when it is
+  the host's (``--host-id``, or the first id heard) and its own motion explains it; the
+  rest are counted (``host_rejected``, ``host_<reason>``), logged at most once per reason
+  per second, recorded with status ``host_<reason>``, and start no tick.
 * Misbehavior (``--mbd``): :class:`catc.mbd.MisbehaviorDetector`'s checks on every RV
   message that passes verification, on the host's clock; a detection is counted
   (``mbd_<check>``) and reported, and a sender in quarantine is dropped with its track
@@ -33,6 +37,7 @@ from catc.errors import DecodeError
 from catc.j2735 import decode_frame, open_envelope
 from catc.replay import split_due
 from obu.capture import ObuCapture, Received
+from obu.host import HostGate
 from obu.status import RateLimitedLog
 
 __all__ = ["Frames", "claimed_sender", "verifier"]
@@ -97,8 +102,10 @@ class Frames:
             from catc.mbd import MisbehaviorDetector
 
             self.mbd = MisbehaviorDetector()
-        self.last_host: tuple[BSM, float, float] | None = None  # newest host frame: BSM,
-        # rx unix, its time on the host's clock
+        self.last_host: tuple[BSM, float, float] | None = None  # the ticking host frame:
+        # BSM, rx unix, its time on the host's clock
+        self.host_rx: dict[int, float] = {}  # id(host BSM) -> rx unix, until its tick
+        self.gate = HostGate(getattr(args, "host_id", None))
         self.enforce = args.verify == "enforce"
 
     def take(self, channel: str, data: bytes, rx_unix: float) -> BSM | None:
@@ -129,9 +136,29 @@ class Frames:
             self.pending.append(bsm)
             self.pending_rx[id(bsm)] = (rx_unix, data, verdict)
             return None
-        if bsm.sec_mark is not None:  # the host's clock (data time), for the MBD
-            self.last_host = (bsm, rx_unix, self.clock(bsm.sec_mark))
+        resyncs = self.gate.resyncs
+        reason = self.gate.check(bsm, rx_unix)
+        if self.gate.resyncs != resyncs:
+            self.counters["host_resyncs"] += 1
+            self.log("host_resync", "the host's frames went on after a gap: resynced")
+        if reason is not None:
+            self.counters["host_rejected"] += 1
+            self.counters[f"host_{reason}"] += 1
+            self.log(f"host_{reason}", f"host frame not believed: {reason} (host id "
+                                       f"{self.gate.host_id:08x})")
+            if self.cap is not None:
+                self.cap.frame(rx_unix, channel, data, f"host_{reason}",
+                               sender=(bsm.temp_id, bsm.msg_cnt, bsm.sec_mark))
+            return None
+        self.host_rx[id(bsm)] = rx_unix
         return bsm
+
+    def start_tick(self, host: BSM) -> float:
+        """Host frame ``host`` (believed by :meth:`take`) starts its tick: from now on
+        it is the host's position and clock for the misbehavior checks.  Its rx time."""
+        rx_unix = self.host_rx.pop(id(host))
+        self.last_host = (host, rx_unix, self.clock(host.sec_mark))
+        return rx_unix
 
     def verify(self, envelope: Any, rx_unix: float) -> str:
         """The 1609.2 verdict of one RV frame (``ok`` or a reason), counted."""

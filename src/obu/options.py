@@ -17,8 +17,19 @@ DEFAULTS = {
     "predictor": "hgp", "capture": None, "overwrite": False, "duration": None, "idle_exit": None,
     "warnings": None, "collect_ms": 5.0, "can_interface": "virtual", "can_channel": None,
     "can_fd": False, "progress": True, "max_tracks": 1000, "verify": "off", "trust": None,
-    "mbd": False, "web": None,
+    "mbd": False, "web": None, "host_id": None,
 }
+
+
+def temporary_id(text: str) -> int:
+    """A J2735 TemporaryID (4 octets) as hex (``0x1a2b3c4d`` or ``1a2b3c4d``)."""
+    try:
+        value = int(text, 16)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a hex TemporaryID: {text!r}") from None
+    if not 0 <= value < 2 ** 32:
+        raise argparse.ArgumentTypeError(f"a TemporaryID is 4 octets: {text!r}")
+    return value
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -30,6 +41,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "(default 127.0.0.1:4500)")
     p.add_argument("--host-listen", type=address, help="UDP HOST:PORT of the host "
                    "vehicle's frames (default 127.0.0.1:4501)")
+    p.add_argument("--host-id", type=temporary_id, metavar="HEX",
+                   help="the host vehicle's TemporaryID (hex, as the captures write it): "
+                        "host frames of any other id are not believed (default: the first "
+                        "id heard on the host channel)")
     p.add_argument("--predictor", choices=NAMES, help="tracking predictor (default hgp)")
     p.add_argument("--capture", metavar="DIR", help="capture directory (see --help)")
     p.add_argument("--overwrite", action="store_true", default=None,

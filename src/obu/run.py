@@ -27,7 +27,10 @@ Outputs:
 * warnings: a log line on stderr per event, and one JSON object per event on stdout
   (or ``--warnings FILE``);
 * a status line on stderr every second: frames/s, decode errors, tracked RVs, tick time
-  p99, deadline misses, warnings;
+  p99, the lag from a frame's arrival (the kernel's stamp) to its tick's decision
+  (p50/p99), the receive queue (frames, and kB in the socket buffers), deadline misses
+  (a step over 100 ms, or a tick decided over 100 ms after its host frame arrived),
+  warnings;
 * the capture directory (append-only, flushed at every tick): ``obu.config.json``
   (settings, versions, ENU origin), ``obu.rx.jsonl`` (every frame with its receive time,
   channel, octets and what became of it; ``unticked``: received after the last host
@@ -35,6 +38,11 @@ Outputs:
   HV state, step time, warnings), ``obu.tracks.jsonl`` (every tracked RV at every tick:
   estimate, source, age, zones now and predicted, lane), ``obu.events.jsonl`` (warning
   starts and ends), ``obu.counters.json`` (rewritten every second and at the end).
+
+The host channel defends itself (:class:`obu.host.HostGate`): only the host's id
+(``--host-id``, or the first heard) is believed, and only frames its own motion explains:
+no clock jump, no position or speed it cannot reach.  The rest are counted
+(``host_<reason>``) and start no tick, so a flood at the host port changes nothing.
 
 Robustness: a frame that does not decode (garbage, truncated, another message, absurd
 values), an oversized datagram or a broken ISO-TP transfer is counted by reason and
@@ -88,12 +96,13 @@ async def serve(args: argparse.Namespace) -> dict:
         loop.add_signal_handler(sig, lambda s=sig: (stopped_by.append(s.name), stop.set()))
     ending = ("error", "")  # until the loop ends without an exception
     inbox: deque[tuple[str, bytes, float]] = deque()  # frames in arrival order
+    pending = None  # a believed host frame that ended the last tick's collection
     arrived = asyncio.Event()
 
     async def pump() -> None:
         while True:
             r = await rx.recv()
-            inbox.append((r.channel, r.data, time.time()))
+            inbox.append((r.channel, r.data, r.arrival))
             arrived.set()
 
     pumping = asyncio.create_task(pump())
@@ -119,26 +128,32 @@ async def serve(args: argparse.Namespace) -> dict:
                     and time.monotonic() - obu.last_frame > args.idle_exit:
                 done = "idle"
                 break
-            if not inbox:
+            if not inbox and pending is None:
                 arrived.clear()
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(arrived.wait(), 0.2)
-            while inbox:
-                host = obu.frame(*inbox.popleft())
-                if host is None:
-                    continue
+            while inbox or pending is not None:
+                if pending is None:
+                    host = obu.frame(*inbox.popleft())
+                    if host is None:  # an RV frame, or a host frame not believed
+                        continue
+                else:
+                    host, pending = pending, None
                 # the tick rule (obu.tick): take the frames that reached the receiver
                 # before this host frame, let the RV channel go quiet, then step
-                obu.rule.host_frame(time.monotonic())
+                obu.begin(host)
                 action = WAIT
                 while action is not STEP:
                     if action is TAKE:
-                        obu.frame(*inbox.popleft())
+                        pending = obu.frame(*inbox.popleft())
+                        if pending is not None:  # the next believed host frame
+                            action = obu.rule.next_host()
+                            continue
                     else:
                         await asyncio.sleep(0)
                     head = inbox[0][0] if inbox else None
                     action = obu.rule.next(time.monotonic(), head,
-                                           head is None and rx.waiting())
+                                           head is None and rx.waiting("rv"))
                 obu.tick(host)
                 obu.gc.after_tick()
                 break
@@ -147,9 +162,13 @@ async def serve(args: argparse.Namespace) -> dict:
                 obu.gc.idle()  # no ticks for a while: still collect (hil.gcpolicy)
                 fps = (obu.counters["frames"] - frames_at_status) / (now - last_status)
                 obu.status.frames_per_s = fps
+                backlog = rx.backlog()
+                backlog["queued"] += len(inbox)
+                obu.status.backlog = backlog
                 last_status, frames_at_status = now, obu.counters["frames"]
                 if args.progress:
                     print(obu.status.line(fps, len(obu.cam)), file=sys.stderr, flush=True)
+                obu.status.lag_recent.clear()
                 if obu.cap is not None:
                     obu.cap.write_counters(obu.all_counters(rx.stats))
         ending = ("signal", stopped_by[0]) if stopped_by else ("clean", done)
@@ -163,6 +182,9 @@ async def serve(args: argparse.Namespace) -> dict:
         pumping.cancel()
         if runner is not None:
             await runner.cleanup()
+        backlog = rx.backlog()
+        backlog["queued"] += len(inbox)
+        obu.status.backlog = backlog
         counters = obu.all_counters(rx.stats)
         await rx.aclose()
         if obu.cap is not None:

@@ -6,15 +6,18 @@ ones wait for a later tick.  Before stepping it takes every frame that reached t
 receiver before the host frame (in the OBU's queue, or still in the receiver's queue or
 socket buffer: :meth:`hil.transport.Receiver.waiting`) for up to :data:`DRAIN_S` (50 ms),
 then lets the RV channel go quiet (no RV frame for :data:`QUIET_S`) for up to
-``--collect-ms``, and it stops at the next host frame.  So frames sent just before the
+``--collect-ms``, and it stops at the next host frame that the host channel believes
+(:class:`obu.host.HostGate`): a frame at the host port that is not believed is taken,
+counted and dropped like garbage, and the collection goes on.  So frames sent just before the
 host's are in its tick, as a radio's would be within one 100 ms slot: which tick a frame
 joins depends on the order of the frames, not on how fast the OBU reads them.
 
 :class:`TickRule` is the second half as a pure object, like h11's connection: the event
 loop (:func:`obu.run.serve`) tells it when a host frame starts a tick and when an RV frame
 arrives, and asks it, with the time and what is waiting, what to do next: :data:`TAKE`
-the next frame of the queue, :data:`WAIT` (yield to the event loop, which reads the
-sockets, then ask again) or :data:`STEP` now.  It reads no clock and touches no socket, so
+the next frame of the queue (when it is a believed host frame, the loop calls
+:meth:`TickRule.next_host` and steps), :data:`WAIT` (yield to the event loop, which reads
+the sockets, then ask again) or :data:`STEP` now.  It reads no clock and touches no socket, so
 a test drives it with a fake clock.
 """
 
@@ -40,7 +43,7 @@ QUIET_S = 0.001
 class Action(enum.Enum):
     """What the event loop does next while a tick collects its frames."""
 
-    TAKE = "take"  #: handle the next frame of the queue (an RV frame)
+    TAKE = "take"  #: handle the next frame of the queue
     WAIT = "wait"  #: yield to the event loop (it reads the sockets), then ask again
     STEP = "step"  #: step the CAM at the host frame now
 
@@ -81,15 +84,22 @@ class TickRule:
         the receiver (only asked when the queue is empty)."""
         if self.limit is None or self.deadline is None:
             raise RuntimeError("no host frame is collecting its frames")
-        if head == "rv":
+        if head is not None:  # an RV frame, or a host frame that may not be believed
             return TAKE
-        if head == "host" or now >= self.limit:
+        if now >= self.limit:
             return self._step()
         if waiting:
             return WAIT
         if now >= self.deadline or now - self.last_rv > self.quiet_s:
             return self._step()
         return WAIT
+
+    def next_host(self) -> Action:
+        """The frame just taken was a believed host frame: this tick steps now (the
+        next starts at that frame)."""
+        if self.limit is None:
+            raise RuntimeError("no host frame is collecting its frames")
+        return self._step()
 
     def _step(self) -> Action:
         self.deadline = self.limit = None

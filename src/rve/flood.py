@@ -17,6 +17,7 @@ for ``--duration`` s (wall clock), and prints what it sent, by kind, as one JSON
 
     rve flood --dataset SPEC --to HOST:PORT [--rate 2000] [--duration S] [--speed 4]
               [--mix random=1,oversize=0.1,copy=1] [--per 50] [--seed 7] [--flood-seed 1]
+              [--lag 4] [--until S]
 """
 
 from __future__ import annotations
@@ -68,6 +69,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="copy frames the RVE sent at least this long ago, in data seconds "
                         "(default 4: after the receiver has the originals, whatever the "
                         "start-up skew of the two processes)")
+    p.add_argument("--until", type=positive, metavar="S",
+                   help="copy only frames of the RVE's first S data seconds (its --duration)")
     p.add_argument("--mix", type=_mix, default=_mix("random=1,oversize=0.1,copy=1"),
                    help="kinds and weights (default random=1,oversize=0.1,copy=1)")
 
@@ -79,7 +82,8 @@ def _frames(args: argparse.Namespace) -> tuple[list[float], list[bytes]]:
     from hil.datasets import load_table
 
     table = load_table(args.dataset, args.trip)
-    the_plan = plan(table, ChannelConfig(per=args.per / 100.0), args.seed)
+    the_plan = plan(table, ChannelConfig(per=args.per / 100.0), args.seed,
+                    duration=getattr(args, "until", None))
     ev = the_plan.events
     t0 = float(ev["t"][ev["host"]][0])
     times, frames = [], []

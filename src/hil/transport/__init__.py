@@ -90,6 +90,10 @@ class Received:
     data: bytes
     #: ``time.monotonic()`` when the frame was complete at the receiver.
     rx_time: float
+    #: Wall-clock time (unix s) the frame arrived: the kernel's stamp where the backend
+    #: has one (UDP: ``SO_TIMESTAMPNS``), so the time a frame waited in a socket buffer
+    #: counts in the OBU's lag; else ``time.time()`` when it was complete.
+    arrival: float = 0.0
 
 
 class Sender(abc.ABC):
@@ -133,8 +137,10 @@ class Receiver(abc.ABC):
         self._queue: asyncio.Queue[Received | None] = asyncio.Queue()
         self._ended = False  # the end mark (None) is in the queue
 
-    def _deliver(self, channel: Literal["rv", "host"], data: bytes) -> None:
-        self._queue.put_nowait(Received(channel, data, time.monotonic()))
+    def _deliver(self, channel: Literal["rv", "host"], data: bytes,
+                 arrival: float | None = None) -> None:
+        self._queue.put_nowait(Received(channel, data, time.monotonic(),
+                                        time.time() if arrival is None else arrival))
         count(self.stats, "frames")
         count(self.stats, "bytes", len(data))
         count(self.stats, channel)
@@ -152,12 +158,19 @@ class Receiver(abc.ABC):
             raise TransportError(f"{self.kind} receiver is closed")
         return got
 
-    def waiting(self) -> bool:
+    def waiting(self, channel: Literal["rv", "host"] | None = None) -> bool:
         """True while a frame that has reached this receiver is not yet handed out by
         :meth:`recv`: in its queue, or (for backends that can tell) still in the kernel's
-        socket buffer.  The OBU drains these before a tick: they arrived before the
+        socket buffer; with ``channel``, where the backend can tell, a frame of that
+        channel.  The OBU drains the RV frames before a tick: they arrived before the
         host frame that triggers it."""
         return self._queue.qsize() > self._ended  # the end mark is no frame
+
+    def backlog(self) -> dict[str, int]:
+        """What waits to be handed out: ``queued`` frames in this receiver's queue and,
+        for backends that can tell, ``socket_bytes`` in the kernel's receive buffers and
+        the datagrams the kernel dropped for want of room (``socket_drops``)."""
+        return {"queued": max(0, self._queue.qsize() - self._ended)}
 
     @abc.abstractmethod
     async def aclose(self) -> None:

@@ -34,6 +34,7 @@ import socket
 import struct
 import time
 from pathlib import Path
+from typing import Literal
 
 import asyncio_dgram
 
@@ -169,6 +170,10 @@ def _bound_socket(addr: Address, rcvbuf: int) -> tuple[socket.socket, int]:
 #: time it reached the socket (``struct timespec``, two native longs).
 _SO_TIMESTAMPNS = 35
 _TIMESPEC = struct.Struct("@ll")
+#: Linux's SO_MEMINFO: a socket's memory, ``SK_MEMINFO_VARS`` (9) u32s, the receive
+#: queue's allocation first and the drops last.
+_SO_MEMINFO = 55
+_MEMINFO = struct.Struct("@9I")
 
 
 def _stamp_arrivals(sock: socket.socket) -> None:
@@ -220,11 +225,11 @@ class UdpReceiver(Receiver):
         for channel in ("rv", "host", "rv"):
             self._read(channel, batch)
         batch.sort()
-        for _, _, channel, data in batch:
+        for arrival, _, channel, data in batch:
             if len(data) > self._max_frame:
                 count(self.stats, "oversized")
             else:
-                self._deliver(channel, data)  # type: ignore[arg-type]
+                self._deliver(channel, data, arrival)  # type: ignore[arg-type]
 
     def _read(self, channel: str, batch: list[tuple[float, int, str, bytes]]) -> None:
         """Append what waits in ``channel``'s socket buffer to ``batch`` as (arrival,
@@ -248,17 +253,36 @@ class UdpReceiver(Receiver):
             batch.append((time.time() if arrival is None else arrival, len(batch), channel,
                           data))
 
-    def waiting(self) -> bool:
-        """Also True while a datagram sits in a socket's kernel buffer, not yet read by
-        the event loop.  Over loopback a datagram is in the receiver's buffer when
-        ``sendto`` returns, so every RV frame sent before a host frame is found here or in
-        the queue once that host frame is received."""
+    def waiting(self, channel: Literal["rv", "host"] | None = None) -> bool:
+        """Also True while a datagram sits in a socket's kernel buffer (``channel``'s
+        socket only, when given), not yet read by the event loop.  Over loopback a
+        datagram is in the receiver's buffer when ``sendto`` returns, so every RV frame
+        sent before a host frame is found here or in the queue once that host frame is
+        received."""
         if self._closed:
             return False
         if super().waiting():
             return True
-        ready, _, _ = select.select(list(self._socks.values()), [], [], 0)
+        socks = list(self._socks.values()) if channel is None else [self._socks[channel]]
+        ready, _, _ = select.select(socks, [], [], 0)
         return bool(ready)
+
+    def backlog(self) -> dict[str, int]:
+        """Also the octets waiting in the sockets' kernel buffers (``SO_MEMINFO``'s
+        receive allocation, overhead included) and the datagrams the kernel dropped."""
+        out = super().backlog()
+        out["socket_bytes"] = out["socket_drops"] = 0
+        if self._closed:
+            return out
+        for sock in self._socks.values():
+            try:
+                info = _MEMINFO.unpack(sock.getsockopt(socket.SOL_SOCKET, _SO_MEMINFO,
+                                                       _MEMINFO.size))
+            except (OSError, struct.error):
+                continue
+            out["socket_bytes"] += info[0]  # SK_MEMINFO_RMEM_ALLOC
+            out["socket_drops"] += info[8]  # SK_MEMINFO_DROPS
+        return out
 
     async def aclose(self) -> None:
         if self._closed:

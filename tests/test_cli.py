@@ -140,7 +140,9 @@ def test_demo_replays_the_nyc_event_through_the_wire_and_the_ca_tc():
     ("obu.cli", ["run", "--collect-ms", "nan"]),
     ("rve.cli", ["run", "--speed", "inf"]),
     ("rve.cli", ["run", "--duration", "-5"]),
+    ("rve.cli", ["run", "--duration", "nan"]),
     ("rve.cli", ["run", "--to", "127.0.0.1:0"]),
+    ("rve.cli", ["run", "--attack", "ghost:ahead=nan"]),  # refused once the plan is made
     ("rve.cli", ["run", "--latency", "nan"]),
     ("rve.cli", ["run", "--per", "nan"]),
     ("rve.cli", ["flood", "--dataset", "x", "--to", "127.0.0.1:0"]),

@@ -180,3 +180,100 @@ def test_a_reader_that_closes_the_pipe_ends_the_command_quietly():
     err = proc.stderr.read().decode()
     assert proc.wait(60) == 141, err
     assert "Traceback" not in err and "BrokenPipe" not in err, err
+
+
+def read_only_dir(tmp_path):
+    """A directory nobody may create files in: mode 0555, or for root (whom permission
+    bits do not stop) /sys/kernel, where sysfs refuses new files to anyone."""
+    import os
+    from pathlib import Path
+
+    if os.geteuid() != 0:
+        ro = tmp_path / "read-only"
+        ro.mkdir(mode=0o555)
+        return ro
+    if not Path("/sys/kernel").is_dir():
+        pytest.skip("running as root without /sys/kernel: no directory root cannot write")
+    return Path("/sys/kernel")
+
+
+@pytest.fixture
+def bad_files(tmp_path) -> dict[str, str]:
+    """The wrong files a user hands the commands, by the names the table below uses."""
+    import random
+
+    junk = tmp_path / "junk.bin"
+    junk.write_bytes(random.Random(27).randbytes(4096))  # 4 kB of binary garbage
+    bad_json = tmp_path / "bad.json"
+    bad_json.write_text('{"rows": [1,\n  oops]}\n')
+    unreadable = tmp_path / "unreadable"  # a capture whose first file reads as EIO
+    unreadable.mkdir()
+    (unreadable / "rve.config.json").symlink_to("/proc/self/mem")
+    torn = tmp_path / "torn"  # a capture whose config is not JSON
+    torn.mkdir()
+    (torn / "rve.config.json").write_text('{"run_id": "x",\n')
+    pki = tmp_path / "pki"  # a PKI directory whose manifest is garbage
+    pki.mkdir()
+    (pki / "pki.json").write_bytes(junk.read_bytes())
+    listed = tmp_path / "listed"  # ... or JSON, but not an object
+    listed.mkdir()
+    (listed / "pki.json").write_text("[1]\n")
+    return {"tmp": str(tmp_path), "junk": str(junk), "bad_json": str(bad_json),
+            "unreadable": str(unreadable), "torn": str(torn), "pki": str(pki),
+            "listed": str(listed), "read_only": str(read_only_dir(tmp_path))}
+
+
+RVE_RUN = ["rve.cli", "run", "--asap", "--no-progress", "--duration", "0.3",
+           "--to", "127.0.0.1:9", "--host-to", "127.0.0.1:9"]
+OBU_RUN = ["obu.cli", "run", "--duration", "0.3", "--no-progress",
+           "--listen", "127.0.0.1:0", "--host-listen", "127.0.0.1:0"]
+
+
+@pytest.mark.parametrize(("argv", "code", "needle"), [
+    # binary garbage and malformed JSON where JSON lines or a dataset belong
+    (["captures.cli", "report", "--sweep", "{junk}", "--out", "{tmp}/r"], 2,
+     "{junk}: not UTF-8 text"),
+    (["captures.cli", "report", "--sweep", "{bad_json}", "--out", "{tmp}/r"], 2,
+     "{bad_json}: not valid JSON: line 2 col 3"),
+    # a capture that cannot be read: a file that fails with EIO, one that is not JSON
+    (["captures.cli", "score", "{unreadable}"], 1,
+     "{unreadable}/rve.config.json: Input/output error"),
+    (["captures.cli", "score", "{torn}"], 2, "{torn}/rve.config.json: not valid JSON: line 2"),
+    # a PKI manifest that is garbage, or JSON but not an object
+    ([*RVE_RUN, "--sign", "{pki}"], 2, "{pki}/pki.json: not UTF-8 text"),
+    ([*OBU_RUN, "--verify", "enforce", "--trust", "{listed}"], 2,
+     "{listed}/pki.json: not a JSON object"),
+])
+def test_every_bad_input_is_one_line(argv, code, needle, bad_files):
+    """Issue 27: each of these ended in a traceback, or in a line that named neither the
+    file nor what was wrong with it."""
+    out = run(*(a.format(**bad_files) for a in argv))
+    err = out.stderr.decode()
+    assert out.returncode == code, err
+    assert "Traceback" not in err, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].strip(), err
+    assert needle.format(**bad_files) in lines[0], lines[0]
+
+
+def test_every_json_error_names_its_file(tmp_path):
+    """Issue 27: a JSON error said ``Expecting value: line 1 column 1 (char 0)`` and
+    nothing of the file.  Each reader of a JSON file names it, with the line and column."""
+    import re
+
+    from catc.predict.bank import KernelBank
+    from hil.capture import CaptureError, read_json
+    from hil.errors import InputError, load_json
+
+    torn = tmp_path / "obu.end.json"  # an end record cut short
+    torn.write_text('{"exit": "clean",\n "reason": ')
+    where = re.escape(f"{torn}: not valid JSON: line 2 col 12: ")
+    with pytest.raises(InputError, match=f"^{where}"):
+        load_json(torn)
+    with pytest.raises(CaptureError, match=f"^{where}"):
+        read_json(torn)
+    torn.write_text("[1, 2]")
+    with pytest.raises(CaptureError, match=f"^{re.escape(str(torn))}: not a JSON object"):
+        read_json(torn)
+    with pytest.raises(ValueError, match=r"^bank\.json: not valid JSON: line 1 col 1: "):
+        KernelBank.from_json("nope", "bank.json")

@@ -13,11 +13,12 @@ from pathlib import Path
 
 from catc.datasets import KINDS, detect_kind, parse
 from catc.mobility import MobilityTable
+from hil.errors import InputError
 
 __all__ = ["DatasetError", "load", "load_files", "load_table", "scenario_file"]
 
 
-class DatasetError(ValueError):
+class DatasetError(InputError):
     """A dataset spec that cannot be loaded; ``str()`` is a one-line message."""
 
 

@@ -231,6 +231,13 @@ OBU_RUN = ["obu.cli", "run", "--duration", "0.3", "--no-progress",
 
 @pytest.mark.parametrize(("argv", "code", "needle"), [
     # binary garbage and malformed JSON where JSON lines or a dataset belong
+    (["rve.cli", "encode", "{junk}"], 1, "{junk}: not UTF-8 text"),
+    (["rve.cli", "encode", "{bad_json}"], 1, "{bad_json}: line 1:"),
+    (["rve.cli", "flood", "--dataset", "{junk}", "--to", "127.0.0.1:9"], 2, "{junk}"),
+    (["rve.cli", "flood", "--trip", "nosuch", "--to", "127.0.0.1:9"], 2,
+     "dataset 'scenario:highway-braking' has no trip 'nosuch'; trips: highway-braking"),
+    ([*RVE_RUN, "--trip", "nosuch"], 2,
+     "dataset 'scenario:highway-braking' has no trip 'nosuch'; trips: highway-braking"),
     (["captures.cli", "report", "--sweep", "{junk}", "--out", "{tmp}/r"], 2,
      "{junk}: not UTF-8 text"),
     (["captures.cli", "report", "--sweep", "{bad_json}", "--out", "{tmp}/r"], 2,

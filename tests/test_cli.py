@@ -245,6 +245,8 @@ OBU_RUN = ["obu.cli", "run", "--duration", "0.3", "--no-progress",
     # a capture that cannot be read: a file that fails with EIO, one that is not JSON
     (["captures.cli", "score", "{unreadable}"], 1,
      "{unreadable}/rve.config.json: Input/output error"),
+    (["captures.cli", "plot", "{unreadable}"], 1,
+     "{unreadable}/rve.config.json: Input/output error"),
     (["captures.cli", "score", "{torn}"], 2, "{torn}/rve.config.json: not valid JSON: line 2"),
     # a PKI manifest that is garbage, or JSON but not an object
     ([*RVE_RUN, "--sign", "{pki}"], 2, "{pki}/pki.json: not UTF-8 text"),

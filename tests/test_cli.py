@@ -230,6 +230,13 @@ OBU_RUN = ["obu.cli", "run", "--duration", "0.3", "--no-progress",
 
 
 @pytest.mark.parametrize(("argv", "code", "needle"), [
+    # a capture directory that cannot be made or written (the OBU's three too)
+    ([*RVE_RUN, "--capture", "/proc/x"], 2, "/proc/x"),
+    ([*RVE_RUN, "--capture", "{junk}/sub"], 2, "{junk}/sub"),
+    ([*RVE_RUN, "--capture", "{read_only}"], 2, "{read_only}/rve."),
+    ([*OBU_RUN, "--capture", "/proc/x"], 2, "/proc/x"),
+    ([*OBU_RUN, "--capture", "{junk}/sub"], 2, "{junk}/sub"),
+    ([*OBU_RUN, "--capture", "{read_only}"], 2, "{read_only}/obu."),
     # binary garbage and malformed JSON where JSON lines or a dataset belong
     (["rve.cli", "encode", "{junk}"], 1, "{junk}: not UTF-8 text"),
     (["rve.cli", "encode", "{bad_json}"], 1, "{bad_json}: line 1:"),
@@ -286,3 +293,76 @@ def test_every_json_error_names_its_file(tmp_path):
         read_json(torn)
     with pytest.raises(ValueError, match=r"^bank\.json: not valid JSON: line 1 col 1: "):
         KernelBank.from_json("nope", "bank.json")
+
+
+def limited(size: int):
+    """A ``preexec_fn`` that caps the files the child writes at ``size`` bytes
+    (RLIMIT_FSIZE, SIGXFSZ ignored): a write past it fails with EFBIG, as one on a full
+    disk fails with ENOSPC, without a mount to make and remove."""
+    import resource
+    import signal
+
+    def cap() -> None:
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (size, size))
+
+    return cap
+
+
+def assert_flushed(directory, failed: str) -> None:
+    """Every JSON-lines file of ``directory`` holds whole lines but ``failed``, which the
+    writes filled up to the limit; the end record says the run ended in that error."""
+    from pathlib import Path
+
+    for path in Path(directory).glob("*.jsonl"):
+        text = path.read_text()
+        if path.name != failed:
+            assert text.endswith("\n") and all(map(json.loads, text.splitlines())), path
+    end = json.loads(next(Path(directory).glob("*.end.json")).read_text())
+    assert end["exit"] == "error" and failed in end["reason"], end
+
+
+def test_a_full_disk_during_rve_run_is_one_line_and_keeps_what_was_written(tmp_path):
+    """Issue 27: a capture write that fails mid-run (here EFBIG; ENOSPC alike) printed
+    ``[Errno 27] File too large`` without a file, exit 2, and no end record."""
+    cap = tmp_path / "cap"
+    out = subprocess.run([sys.executable, "-m", "rve.cli", "run", "--asap", "--no-progress",
+                          "--to", "127.0.0.1:9", "--host-to", "127.0.0.1:9",
+                          "--capture", str(cap)], capture_output=True, timeout=60,
+                         preexec_fn=limited(64 * 1024), check=False)
+    err = out.stderr.decode()
+    assert out.returncode == 1 and "Traceback" not in err, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"rve run: {cap}/rve."), err
+    failed = lines[0].split(": ")[1].rpartition("/")[2]
+    assert "File too large" in lines[0] and (cap / failed).stat().st_size == 64 * 1024
+    assert_flushed(cap, failed)
+
+
+def test_a_full_disk_during_obu_run_is_one_line_and_keeps_what_was_written(tmp_path):
+    """The OBU's side of the test above: its capture fills up while an RVE sends."""
+    from hil.transport.udp import free_ports, wait_bound
+
+    cap = tmp_path / "cap"
+    ports = free_ports()
+    obu = subprocess.Popen([sys.executable, "-m", "obu.cli", "run", "--no-progress",
+                            "--listen", f"127.0.0.1:{ports[0]}", "--host-listen",
+                            f"127.0.0.1:{ports[1]}", "--capture", str(cap),
+                            "--idle-exit", "1", "--duration", "30"],
+                           stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                           preexec_fn=limited(64 * 1024))
+    try:
+        assert wait_bound(ports[:2], alive=lambda: obu.poll() is None)
+        run("rve.cli", "run", "--asap", "--no-progress", "--duration", "10",
+            "--to", f"127.0.0.1:{ports[0]}", "--host-to", f"127.0.0.1:{ports[1]}")
+        err = obu.communicate(timeout=30)[1].decode()
+    finally:
+        if obu.poll() is None:
+            obu.kill()
+    assert obu.returncode == 1 and "Traceback" not in err, err
+    # the warnings' log lines ("obu: FCW start ..."), then the one line of the error
+    lines = [line for line in err.strip().splitlines() if not line.startswith("obu: ")]
+    assert len(lines) == 1 and lines[0].startswith(f"obu run: {cap}/obu."), err
+    failed = lines[0].split(": ")[1].rpartition("/")[2]
+    assert "File too large" in lines[0] and (cap / failed).stat().st_size == 64 * 1024
+    assert_flushed(cap, failed)

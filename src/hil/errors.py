@@ -6,6 +6,9 @@ and with which file.
   (:class:`hil.datasets.DatasetError`, :class:`hil.config.ConfigError`,
   :class:`hil.pki.PkiError`, :class:`hil.capture.CaptureError`...), so
   :func:`hil.cliargs.dispatch` prints any that a command did not catch in one line.
+* :class:`WriteError`: an output file that could not be written while a run went on (a
+  full disk, a file size limit, an I/O error), with the file's name: the daemons end the
+  run on it, flushed, with exit status 1.
 * :func:`describe`: any :class:`OSError` as ``FILE: reason``.
 * :func:`read_text`, :func:`load_json` (and :func:`decode`, :func:`parse_json` of content
   read elsewhere): a user's file as text or JSON, whose errors name it and say where the
@@ -19,13 +22,21 @@ import os
 from pathlib import Path
 from typing import Any
 
-__all__ = ["InputError", "decode", "describe", "load_json", "parse_json", "read_bytes",
-           "read_text"]
+__all__ = ["InputError", "WriteError", "decode", "describe", "load_json", "parse_json",
+           "read_bytes", "read_text", "write_error"]
 
 
 class InputError(ValueError):
     """A file or value the user gave that cannot be used; ``str()`` is the one-line
     message, naming the file."""
+
+
+class WriteError(OSError):
+    """An output file that could not be written during a run; ``str()`` is
+    ``FILE: reason``."""
+
+    def __str__(self) -> str:
+        return describe(self)
 
 
 def describe(err: OSError) -> str:
@@ -43,6 +54,12 @@ def describe(err: OSError) -> str:
 def _name(filename: Any) -> str:
     return os.fsdecode(filename) if isinstance(filename, (str, bytes, os.PathLike)) \
         else str(filename)  # a file descriptor
+
+
+def write_error(err: OSError, path: str | os.PathLike) -> WriteError:
+    """``err`` (raised while writing ``path``, which it may not name) as a
+    :class:`WriteError` that names it."""
+    return WriteError(err.errno, err.strerror or str(err), os.fspath(path))
 
 
 def read_bytes(path: str | os.PathLike) -> bytes:

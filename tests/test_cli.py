@@ -140,7 +140,9 @@ def test_demo_replays_the_nyc_event_through_the_wire_and_the_ca_tc():
     ("obu.cli", ["run", "--collect-ms", "nan"]),
     ("rve.cli", ["run", "--speed", "inf"]),
     ("rve.cli", ["run", "--duration", "-5"]),
+    ("rve.cli", ["run", "--duration", "nan"]),
     ("rve.cli", ["run", "--to", "127.0.0.1:0"]),
+    ("rve.cli", ["run", "--attack", "ghost:ahead=nan"]),  # refused once the plan is made
     ("rve.cli", ["run", "--latency", "nan"]),
     ("rve.cli", ["run", "--per", "nan"]),
     ("rve.cli", ["flood", "--dataset", "x", "--to", "127.0.0.1:0"]),
@@ -178,3 +180,189 @@ def test_a_reader_that_closes_the_pipe_ends_the_command_quietly():
     err = proc.stderr.read().decode()
     assert proc.wait(60) == 141, err
     assert "Traceback" not in err and "BrokenPipe" not in err, err
+
+
+def read_only_dir(tmp_path):
+    """A directory nobody may create files in: mode 0555, or for root (whom permission
+    bits do not stop) /sys/kernel, where sysfs refuses new files to anyone."""
+    import os
+    from pathlib import Path
+
+    if os.geteuid() != 0:
+        ro = tmp_path / "read-only"
+        ro.mkdir(mode=0o555)
+        return ro
+    if not Path("/sys/kernel").is_dir():
+        pytest.skip("running as root without /sys/kernel: no directory root cannot write")
+    return Path("/sys/kernel")
+
+
+@pytest.fixture
+def bad_files(tmp_path) -> dict[str, str]:
+    """The wrong files a user hands the commands, by the names the table below uses."""
+    import random
+
+    junk = tmp_path / "junk.bin"
+    junk.write_bytes(random.Random(27).randbytes(4096))  # 4 kB of binary garbage
+    bad_json = tmp_path / "bad.json"
+    bad_json.write_text('{"rows": [1,\n  oops]}\n')
+    unreadable = tmp_path / "unreadable"  # a capture whose first file reads as EIO
+    unreadable.mkdir()
+    (unreadable / "rve.config.json").symlink_to("/proc/self/mem")
+    torn = tmp_path / "torn"  # a capture whose config is not JSON
+    torn.mkdir()
+    (torn / "rve.config.json").write_text('{"run_id": "x",\n')
+    pki = tmp_path / "pki"  # a PKI directory whose manifest is garbage
+    pki.mkdir()
+    (pki / "pki.json").write_bytes(junk.read_bytes())
+    listed = tmp_path / "listed"  # ... or JSON, but not an object
+    listed.mkdir()
+    (listed / "pki.json").write_text("[1]\n")
+    return {"tmp": str(tmp_path), "junk": str(junk), "bad_json": str(bad_json),
+            "unreadable": str(unreadable), "torn": str(torn), "pki": str(pki),
+            "listed": str(listed), "read_only": str(read_only_dir(tmp_path))}
+
+
+RVE_RUN = ["rve.cli", "run", "--asap", "--no-progress", "--duration", "0.3",
+           "--to", "127.0.0.1:9", "--host-to", "127.0.0.1:9"]
+OBU_RUN = ["obu.cli", "run", "--duration", "0.3", "--no-progress",
+           "--listen", "127.0.0.1:0", "--host-listen", "127.0.0.1:0"]
+
+
+@pytest.mark.parametrize(("argv", "code", "needle"), [
+    # a capture directory that cannot be made or written (the OBU's three too)
+    ([*RVE_RUN, "--capture", "/proc/x"], 2, "/proc/x"),
+    ([*RVE_RUN, "--capture", "{junk}/sub"], 2, "{junk}/sub"),
+    ([*RVE_RUN, "--capture", "{read_only}"], 2, "{read_only}/rve."),
+    ([*OBU_RUN, "--capture", "/proc/x"], 2, "/proc/x"),
+    ([*OBU_RUN, "--capture", "{junk}/sub"], 2, "{junk}/sub"),
+    ([*OBU_RUN, "--capture", "{read_only}"], 2, "{read_only}/obu."),
+    # binary garbage and malformed JSON where JSON lines or a dataset belong
+    (["rve.cli", "encode", "{junk}"], 1, "{junk}: not UTF-8 text"),
+    (["rve.cli", "encode", "{bad_json}"], 1, "{bad_json}: line 1:"),
+    (["rve.cli", "flood", "--dataset", "{junk}", "--to", "127.0.0.1:9"], 2, "{junk}"),
+    (["rve.cli", "flood", "--trip", "nosuch", "--to", "127.0.0.1:9"], 2,
+     "dataset 'scenario:highway-braking' has no trip 'nosuch'; trips: highway-braking"),
+    ([*RVE_RUN, "--trip", "nosuch"], 2,
+     "dataset 'scenario:highway-braking' has no trip 'nosuch'; trips: highway-braking"),
+    (["captures.cli", "report", "--sweep", "{junk}", "--out", "{tmp}/r"], 2,
+     "{junk}: not UTF-8 text"),
+    (["captures.cli", "report", "--sweep", "{bad_json}", "--out", "{tmp}/r"], 2,
+     "{bad_json}: not valid JSON: line 2 col 3"),
+    # a capture that cannot be read: a file that fails with EIO, one that is not JSON
+    (["captures.cli", "score", "{unreadable}"], 1,
+     "{unreadable}/rve.config.json: Input/output error"),
+    (["captures.cli", "plot", "{unreadable}"], 1,
+     "{unreadable}/rve.config.json: Input/output error"),
+    (["captures.cli", "score", "{torn}"], 2, "{torn}/rve.config.json: not valid JSON: line 2"),
+    # a PKI manifest that is garbage, or JSON but not an object
+    ([*RVE_RUN, "--sign", "{pki}"], 2, "{pki}/pki.json: not UTF-8 text"),
+    ([*OBU_RUN, "--verify", "enforce", "--trust", "{listed}"], 2,
+     "{listed}/pki.json: not a JSON object"),
+])
+def test_every_bad_input_is_one_line(argv, code, needle, bad_files):
+    """Issue 27: each of these ended in a traceback, or in a line that named neither the
+    file nor what was wrong with it."""
+    out = run(*(a.format(**bad_files) for a in argv))
+    err = out.stderr.decode()
+    assert out.returncode == code, err
+    assert "Traceback" not in err, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].strip(), err
+    assert needle.format(**bad_files) in lines[0], lines[0]
+
+
+def test_every_json_error_names_its_file(tmp_path):
+    """Issue 27: a JSON error said ``Expecting value: line 1 column 1 (char 0)`` and
+    nothing of the file.  Each reader of a JSON file names it, with the line and column."""
+    import re
+
+    from catc.predict.bank import KernelBank
+    from hil.capture import CaptureError, read_json
+    from hil.errors import InputError, load_json
+
+    torn = tmp_path / "obu.end.json"  # an end record cut short
+    torn.write_text('{"exit": "clean",\n "reason": ')
+    where = re.escape(f"{torn}: not valid JSON: line 2 col 12: ")
+    with pytest.raises(InputError, match=f"^{where}"):
+        load_json(torn)
+    with pytest.raises(CaptureError, match=f"^{where}"):
+        read_json(torn)
+    torn.write_text("[1, 2]")
+    with pytest.raises(CaptureError, match=f"^{re.escape(str(torn))}: not a JSON object"):
+        read_json(torn)
+    with pytest.raises(ValueError, match=r"^bank\.json: not valid JSON: line 1 col 1: "):
+        KernelBank.from_json("nope", "bank.json")
+
+
+def limited(size: int):
+    """A ``preexec_fn`` that caps the files the child writes at ``size`` bytes
+    (RLIMIT_FSIZE, SIGXFSZ ignored): a write past it fails with EFBIG, as one on a full
+    disk fails with ENOSPC, without a mount to make and remove."""
+    import resource
+    import signal
+
+    def cap() -> None:
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (size, size))
+
+    return cap
+
+
+def assert_flushed(directory, failed: str) -> None:
+    """Every JSON-lines file of ``directory`` holds whole lines but ``failed``, which the
+    writes filled up to the limit; the end record says the run ended in that error."""
+    from pathlib import Path
+
+    for path in Path(directory).glob("*.jsonl"):
+        text = path.read_text()
+        if path.name != failed:
+            assert text.endswith("\n") and all(map(json.loads, text.splitlines())), path
+    end = json.loads(next(Path(directory).glob("*.end.json")).read_text())
+    assert end["exit"] == "error" and failed in end["reason"], end
+
+
+def test_a_full_disk_during_rve_run_is_one_line_and_keeps_what_was_written(tmp_path):
+    """Issue 27: a capture write that fails mid-run (here EFBIG; ENOSPC alike) printed
+    ``[Errno 27] File too large`` without a file, exit 2, and no end record."""
+    cap = tmp_path / "cap"
+    out = subprocess.run([sys.executable, "-m", "rve.cli", "run", "--asap", "--no-progress",
+                          "--to", "127.0.0.1:9", "--host-to", "127.0.0.1:9",
+                          "--capture", str(cap)], capture_output=True, timeout=60,
+                         preexec_fn=limited(64 * 1024), check=False)
+    err = out.stderr.decode()
+    assert out.returncode == 1 and "Traceback" not in err, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"rve run: {cap}/rve."), err
+    failed = lines[0].split(": ")[1].rpartition("/")[2]
+    assert "File too large" in lines[0] and (cap / failed).stat().st_size == 64 * 1024
+    assert_flushed(cap, failed)
+
+
+def test_a_full_disk_during_obu_run_is_one_line_and_keeps_what_was_written(tmp_path):
+    """The OBU's side of the test above: its capture fills up while an RVE sends."""
+    from hil.transport.udp import free_ports, wait_bound
+
+    cap = tmp_path / "cap"
+    ports = free_ports()
+    obu = subprocess.Popen([sys.executable, "-m", "obu.cli", "run", "--no-progress",
+                            "--listen", f"127.0.0.1:{ports[0]}", "--host-listen",
+                            f"127.0.0.1:{ports[1]}", "--capture", str(cap),
+                            "--idle-exit", "1", "--duration", "30"],
+                           stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                           preexec_fn=limited(64 * 1024))
+    try:
+        assert wait_bound(ports[:2], alive=lambda: obu.poll() is None)
+        run("rve.cli", "run", "--asap", "--no-progress", "--duration", "10",
+            "--to", f"127.0.0.1:{ports[0]}", "--host-to", f"127.0.0.1:{ports[1]}")
+        err = obu.communicate(timeout=30)[1].decode()
+    finally:
+        if obu.poll() is None:
+            obu.kill()
+    assert obu.returncode == 1 and "Traceback" not in err, err
+    # the warnings' log lines ("obu: FCW start ..."), then the one line of the error
+    lines = [line for line in err.strip().splitlines() if not line.startswith("obu: ")]
+    assert len(lines) == 1 and lines[0].startswith(f"obu run: {cap}/obu."), err
+    failed = lines[0].split(": ")[1].rpartition("/")[2]
+    assert "File too large" in lines[0] and (cap / failed).stat().st_size == 64 * 1024
+    assert_flushed(cap, failed)

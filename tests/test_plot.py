@@ -18,6 +18,7 @@ from captures.score import score
 from hil.capture import read_lines, schema
 from hil.cliargs import dispatch, make_parser
 from hil.transport.udp import free_ports
+from tests.test_cli import read_only_dir
 from tests.test_obu import finish, rve, start_obu
 
 
@@ -154,6 +155,19 @@ def test_bad_directories_are_one_line_and_exit_2(capture, tmp_path, capsys, monk
     monkeypatch.setenv("PATH", "")  # no ffmpeg
     assert cli(capture, "--mp4", "--out", tmp_path / "x") == 2
     assert "ffmpeg" in capsys.readouterr().err
+
+
+def test_an_out_that_cannot_be_written_is_one_line_and_exit_1(capture, tmp_path, capsys):
+    """Issue 27: --out in a directory nobody may write to ended in a traceback (the others
+    in a line that said exit 2, bad usage, for what is a failed write)."""
+    regular = tmp_path / "file"
+    regular.write_text("")
+    for out in (read_only_dir(tmp_path), regular / "sub", Path("/proc/x.png")):
+        assert cli(capture, "--out", out) == 1
+        err = capsys.readouterr().err
+        lines = err.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith(f"captures plot: {out}"), err
+        assert "Traceback" not in err
 
 
 def test_gif_is_the_same_drawn_by_one_or_two_processes(capture, tmp_path):

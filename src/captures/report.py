@@ -22,6 +22,7 @@ from pathlib import Path
 from captures.sweep import SweepError, add_grid_arguments, run_sweep
 from captures.sweep_tables import grid_table
 from catc.predict import available
+from hil.errors import InputError, load_json
 
 #: The paper's Table "compare" (SPMD, PTE [m] at PER 0..95 %, 10 Hz): the peer's published
 #: numbers, printed next to ours.  Their data (SPMD) is not ours (OpenACC, NGSIM).
@@ -541,12 +542,11 @@ def run(args: argparse.Namespace) -> int:
             if not args.sweep.is_file():
                 raise SweepError(f"{args.sweep}: no such file")
             try:
-                sweep_doc = json.loads(args.sweep.read_text())
-                if not isinstance(sweep_doc["rows"], list):
-                    raise TypeError
-            except (json.JSONDecodeError, KeyError, TypeError):
-                raise SweepError(f"{args.sweep}: not a `captures sweep --json` document") \
-                    from None
+                sweep_doc = load_json(args.sweep)
+            except InputError as err:
+                raise SweepError(str(err)) from None
+            if not isinstance(sweep_doc, dict) or not isinstance(sweep_doc.get("rows"), list):
+                raise SweepError(f"{args.sweep}: not a `captures sweep --json` document")
         else:
             if not args.dataset:
                 args.dataset = [str(args.data / "openacc-zalazone"),

@@ -53,6 +53,7 @@ from catc.sweep import (
     truth_fcw,
 )
 from hil.datasets import DatasetError, load_files
+from hil.errors import InputError
 
 #: The paper's PER grid (docs/architecture.md, "Paper parameters").
 PAPER_PERS = (0, 10, 20, 30, 40, 50, 60, 70, 80, 90, 95)
@@ -131,7 +132,7 @@ def add_grid_arguments(p: argparse.ArgumentParser) -> None:
                    help="replay speed of the live runs (default 8x)")
 
 
-class SweepError(ValueError):
+class SweepError(InputError):
     """A sweep that cannot start; ``str()`` is one line."""
 
 

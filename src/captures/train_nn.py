@@ -18,6 +18,7 @@ from captures.evaluate import csv_list
 from captures.progress import Progress
 from catc import __version__
 from hil.datasets import DatasetError, load_files
+from hil.errors import InputError, load_json
 
 HELP = """\
 Train the neural baselines of the paper (predictors ae, ae-d, lstm, lstm-d) on the trips
@@ -162,8 +163,11 @@ def run(args: argparse.Namespace) -> int:
               f"; {time.monotonic() - t0:.0f} s; wrote {path}")
     index = args.out / "train-nn.json"  # one entry per model; others trained earlier stay
     try:
-        earlier = json.loads(index.read_text()) if index.is_file() else {}
-    except json.JSONDecodeError:
+        earlier = load_json(index) if index.is_file() else {}
+    except InputError as err:  # not JSON: it is rewritten with this run's models
+        print(f"captures train-nn: {err}; rewritten", file=sys.stderr)
+        earlier = {}
+    if not isinstance(earlier, dict):
         earlier = {}
     index.write_text(json.dumps({**earlier, **summary}, indent=1))
     return 0

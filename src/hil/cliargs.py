@@ -2,8 +2,11 @@
 
 A bad flag must give one line and a non-zero exit, not argparse's usage block, so
 :class:`Parser` raises :class:`UsageError` and :func:`dispatch` prints it (one line to
-stderr).  It lives in ``hil``, the I/O shell under the three commands, because it
-writes: nothing in :mod:`catc` does.
+stderr).  So must a bad input file, or a read or write that failed, that a command did
+not catch itself: :func:`dispatch` prints :class:`hil.errors.InputError` (exit status 2)
+and any :class:`OSError` (``FILE: reason``, exit status 1) in one line too.  It lives in
+``hil``, the I/O shell under the three commands, because it writes: nothing in
+:mod:`catc` does.
 """
 
 from __future__ import annotations
@@ -12,6 +15,8 @@ import argparse
 import contextlib
 import os
 import sys
+
+from hil.errors import InputError, describe
 
 
 class UsageError(Exception):
@@ -42,7 +47,10 @@ def dispatch(parser: Parser, argv: list[str] | None) -> int:
     Ctrl-C before a daemon has set up its own handling (or in any other command) is one
     line and status 130; a reader that closed the pipe (``captures score | head``) ends
     the command quietly with status 141, stdout pointed at /dev/null so that the flush
-    at exit raises nothing either."""
+    at exit raises nothing either.  Last, a bad input file (:class:`InputError`) or a
+    file that cannot be read or written (:class:`OSError`) that the command left
+    uncaught is one line too, with status 2 and 1; other exceptions are bugs and keep
+    their traceback."""
     try:
         args = parser.parse_args(argv)
     except UsageError as err:
@@ -58,3 +66,15 @@ def dispatch(parser: Parser, argv: list[str] | None) -> int:
             devnull = os.open(os.devnull, os.O_WRONLY)
             os.dup2(devnull, sys.stdout.fileno())
         return BROKEN_PIPE
+    except InputError as err:
+        print(f"{_prog(parser, args)}: {err}", file=sys.stderr)
+        return 2
+    except OSError as err:
+        print(f"{_prog(parser, args)}: {describe(err)}", file=sys.stderr)
+        return 1
+
+
+def _prog(parser: Parser, args: argparse.Namespace) -> str:
+    """The command as the user typed it (``rve encode``)."""
+    command = getattr(args, "command", None)
+    return f"{parser.prog} {command}" if command else parser.prog

@@ -13,6 +13,8 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
+from hil.errors import InputError
+
 __all__ = ["ConfigError", "add_can_arguments", "address", "destination", "merge",
            "non_negative", "percent", "positive", "run_daemon", "web_address"]
 
@@ -82,7 +84,7 @@ def add_can_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--can-fd", action="store_true", default=None, help="CAN FD frames")
 
 
-class ConfigError(ValueError):
+class ConfigError(InputError):
     """A bad config file; ``str()`` is the one-line message."""
 
 

@@ -13,11 +13,12 @@ from pathlib import Path
 
 from catc.datasets import KINDS, detect_kind, parse
 from catc.mobility import MobilityTable
+from hil.errors import InputError
 
 __all__ = ["DatasetError", "load", "load_files", "load_table", "scenario_file"]
 
 
-class DatasetError(ValueError):
+class DatasetError(InputError):
     """A dataset spec that cannot be loaded; ``str()`` is a one-line message."""
 
 
@@ -85,6 +86,7 @@ def load_files(spec: str) -> list[tuple[Path, list[MobilityTable]]]:
 def load_table(spec: str, trip: str | None) -> MobilityTable:
     """The one trip of ``spec`` that ``rve run`` replays (``scenario:NAME`` too): ``trip``
     by name, or the first.  DatasetError (one line) when it cannot be loaded."""
+    given = spec
     if spec.startswith("scenario:"):
         spec = f"sumo:{scenario_file(spec.split(':', 1)[1])}"
     tables = load(spec)
@@ -93,5 +95,6 @@ def load_table(spec: str, trip: str | None) -> MobilityTable:
     for t in tables:
         if t.name == trip:
             return t
-    raise DatasetError(f"dataset {spec!r} has no trip {trip!r}; trips: "
-                       f"{', '.join(t.name for t in tables[:10])}")
+    more = f" and {len(tables) - 10} more" if len(tables) > 10 else ""
+    raise DatasetError(f"dataset {given!r} has no trip {trip!r}; trips: "
+                       f"{', '.join(t.name for t in tables[:10])}{more}")

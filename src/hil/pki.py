@@ -23,6 +23,7 @@ from pathlib import Path
 
 from catc.errors import DecodeError
 from catc.j2735.ieee1609 import parse_certificate
+from hil.errors import InputError, parse_json
 
 __all__ = ["LoadedPki", "PkiError", "init", "load", "trust_store"]
 
@@ -30,7 +31,7 @@ __all__ = ["LoadedPki", "PkiError", "init", "load", "trust_store"]
 FORMAT = 1
 
 
-class PkiError(ValueError):
+class PkiError(InputError):
     """A PKI directory or trust store that cannot be used (one line, for the CLI)."""
 
 
@@ -103,9 +104,11 @@ def _manifest(d: Path) -> dict:
     if not d.is_dir():
         raise PkiError(f"{d} is not a directory (make one with `rve pki init DIR`)")
     try:
-        manifest = json.loads(_read(d / "pki.json", "PKI manifest"))
-    except json.JSONDecodeError as err:
-        raise PkiError(f"{d / 'pki.json'}: not JSON ({err.msg})") from None
+        manifest = parse_json(_read(d / "pki.json", "PKI manifest"), d / "pki.json")
+    except InputError as err:
+        raise PkiError(str(err)) from None
+    if not isinstance(manifest, dict):
+        raise PkiError(f"{d / 'pki.json'}: not a JSON object (not a PKI manifest)")
     if manifest.get("format") != FORMAT:
         raise PkiError(f"{d / 'pki.json'}: unknown format {manifest.get('format')!r}")
     return manifest

@@ -3,7 +3,9 @@
 
 The JSON-lines files are append-only and flushed at every tick, so ``kill -9`` loses at
 most the last tick; the config and the counters are rewritten whole (through a temporary
-file and a rename, so a reader never sees half of one).
+file and a rename, so a reader never sees half of one).  A write that fails (a full
+disk) raises :class:`hil.errors.WriteError` naming the file; :meth:`ObuCapture.end` still
+flushes and closes the others and writes the end record, which names the failure.
 """
 
 from __future__ import annotations
@@ -16,7 +18,8 @@ from typing import Any
 
 from catc.bsm import BSM
 from catc.cam import MapSnapshot
-from hil.capture import JsonLines, claim, schema, versions
+from hil.capture import JsonLines, claim, finish, schema, versions
+from hil.errors import write_error
 
 __all__ = ["ObuCapture", "Received"]
 
@@ -47,8 +50,11 @@ class ObuCapture:
 
     def _replace(self, name: str, text: str) -> None:
         tmp = self.dir / f"{name}.tmp"
-        tmp.write_text(text)
-        tmp.replace(self.dir / name)
+        try:
+            tmp.write_text(text)
+            tmp.replace(self.dir / name)
+        except OSError as err:
+            raise write_error(err, tmp) from None
 
     def write_config(self, origin: list[float] | None) -> None:
         """``obu.config.json`` with the ENU origin ``[lat, lon, h]`` (None before the
@@ -111,6 +117,15 @@ class ObuCapture:
         for f in self._files():
             f.flush()
 
-    def close(self) -> None:
-        for f in self._files():
-            f.close()
+    def end(self, exit: str, reason: str, failure: OSError | None = None,
+            **counts: int) -> None:
+        """Flush and close every file (all of them, even when one fails), then write how
+        the run ended; ``failure`` (a write that failed just before) or a file that could
+        not be written now raises once the end record says so (the run's own error, when
+        it had one, stays its reason)."""
+        failure = finish(self._files(), failure)
+        if failure is not None and exit != "error":
+            exit, reason = schema.failed(failure)
+        self.write_end(exit, reason, **counts)
+        if failure is not None:
+            raise failure

@@ -16,6 +16,7 @@ from catc.apps import SafetyApps
 from catc.bsm import BSM
 from catc.cam import CamConfig, ContextAwareMap, MapSnapshot, SecMarkClock
 from hil.capture import schema
+from hil.errors import write_error
 from obu.capture import ObuCapture, Received
 from obu.frames import Frames
 from obu.status import RateLimitedLog, Status
@@ -116,17 +117,29 @@ class Obu:
 
         return tick_state(snap, host.sec_mark, self.status.panel(self.cam.tentative))
 
+    def _warn(self, text: str | None) -> None:
+        """``text`` (None: nothing, a flush) to the warnings' output; a ``--warnings``
+        file that cannot be written is a :class:`WriteError` that names it."""
+        try:
+            if text is not None:
+                self.warn_out.write(text)
+            self.warn_out.flush()
+        except OSError as err:
+            if self.warn_out is sys.stdout:
+                raise
+            raise write_error(err, self.args.warnings) from None
+
     def _outputs(self, snap: MapSnapshot, host: BSM, ms: float, decided: float,
                  received: list[Received]) -> None:
         for e in snap.events:
             rec = schema.event(e)
-            self.warn_out.write(json.dumps(rec) + "\n")
+            self._warn(json.dumps(rec) + "\n")
             print(f"obu: {e.app.upper()} {e.kind} RV {rec['rv']} at t={rec['t']:.1f} s",
                   file=sys.stderr, flush=True)
             self.counters[f"events_{e.app}"] += 1
             if self.cap is not None:
                 self.cap.event(rec)
-        self.warn_out.flush()
+        self._warn(None)
         self.counters["warning_ticks"] += bool(snap.warnings)
         if self.cap is None:
             return
@@ -141,16 +154,30 @@ class Obu:
             len(self.frames.pending), self.cam.tentative, self.cam.counters,
             transport_stats, None if self.gc is None else self.gc.counters())
 
-    def close(self, exit: str = "clean", reason: str = "") -> None:
-        """Flush and close; the capture's end record says how the run ended
-        (:data:`hil.capture.schema.ENDINGS`)."""
-        if self.cap is not None:
+    def close(self, exit: str = "clean", reason: str = "",
+              counters: dict[str, Any] | None = None) -> None:
+        """Flush and close; ``counters`` (when given) go into the capture last, and its
+        end record says how the run ended (:data:`hil.capture.schema.ENDINGS`).  A file
+        that cannot be written raises (:class:`hil.errors.WriteError`) once every file is
+        closed and the end record is written."""
+        failure: OSError | None = None
+        if self.warn_out is not sys.stdout:
+            try:
+                self.warn_out.close()
+            except OSError as err:
+                failure = write_error(err, self.args.warnings)
+        if self.cap is None:
+            if failure is not None:
+                raise failure
+            return
+        try:
             # received, never stepped (no host frame came after them): recorded all the
             # same, so that the capture has every frame the OBU received
             for r in self.frames.unticked():
                 self.cap.message(r, "unticked")
-            self.cap.close()
-            self.cap.write_end(exit, reason, ticks=self.counters["ticks"],
-                               frames=self.counters["frames"])
-        if self.warn_out is not sys.stdout:
-            self.warn_out.close()
+            if counters is not None:
+                self.cap.write_counters(counters)
+        except OSError as err:
+            failure = failure or err
+        self.cap.end(exit, reason, failure, ticks=self.counters["ticks"],
+                     frames=self.counters["frames"])

@@ -48,7 +48,10 @@ Robustness: a frame that does not decode (garbage, truncated, another message, a
 values), an oversized datagram or a broken ISO-TP transfer is counted by reason and
 dropped, with at most one log line per reason per second; a step slower than the 100 ms
 tick period is counted as a deadline miss, never skipped; SIGINT/SIGTERM flush and stop;
-``kill -9`` loses at most the last tick.
+``kill -9`` loses at most the last tick.  A capture or ``--warnings`` file that cannot be
+written (a full disk) ends the run with one line naming it and exit status 1, every other
+file flushed and closed, and ``obu.end.json`` naming the error; a capture directory that
+cannot be made or written at the start is one line and exit status 2.
 """
 
 from __future__ import annotations
@@ -64,6 +67,7 @@ from collections import deque
 
 from catc.predict import check
 from hil.capture import schema
+from hil.errors import WriteError, describe
 from hil.gcpolicy import GcPolicy
 from hil.transport import Receiver, TransportError, open_receiver
 from obu.daemon import Obu
@@ -87,7 +91,8 @@ async def serve(args: argparse.Namespace) -> dict:
     try:
         rx = await _open_receiver(args)
     except BaseException as err:
-        obu.close(*schema.failed(err))
+        with contextlib.suppress(OSError):  # err, not a capture file, ends the run
+            obu.close(*schema.failed(err))
         raise
     stop = asyncio.Event()
     stopped_by: list[str] = []  # the signal that stopped the run
@@ -95,6 +100,7 @@ async def serve(args: argparse.Namespace) -> dict:
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, lambda s=sig: (stopped_by.append(s.name), stop.set()))
     ending = ("error", "")  # until the loop ends without an exception
+    raised = False  # an exception ends the run: it is the one to raise
     inbox: deque[tuple[str, bytes, float]] = deque()  # frames in arrival order
     pending = None  # a believed host frame that ended the last tick's collection
     arrived = asyncio.Event()
@@ -173,7 +179,7 @@ async def serve(args: argparse.Namespace) -> dict:
                     obu.cap.write_counters(obu.all_counters(rx.stats))
         ending = ("signal", stopped_by[0]) if stopped_by else ("clean", done)
     except BaseException as err:
-        ending = schema.failed(err)
+        ending, raised = schema.failed(err), True
         raise
     finally:
         obu.gc.restore()  # serve() may run inside another program (the tests)
@@ -187,10 +193,11 @@ async def serve(args: argparse.Namespace) -> dict:
         obu.status.backlog = backlog
         counters = obu.all_counters(rx.stats)
         await rx.aclose()
-        if obu.cap is not None:
-            obu.cap.write_counters(counters)
-            obu.cap.flush()
-        obu.close(*ending)
+        try:  # every file flushed and closed, even after a failed write
+            obu.close(*ending, counters=counters)
+        except OSError:
+            if not raised:
+                raise
     return counters
 
 
@@ -235,8 +242,11 @@ def run(args: argparse.Namespace) -> int:
     except TransportError as err:
         print(f"obu run: {err}", file=sys.stderr)
         return 2
-    except OSError as err:  # the warnings file or capture directory
+    except WriteError as err:  # a capture file or the warnings file, during the run
         print(f"obu run: {err}", file=sys.stderr)
+        return 1
+    except OSError as err:  # the warnings file or capture directory, at the start
+        print(f"obu run: {describe(err)}", file=sys.stderr)
         return 2
     print(json.dumps({"obu": counters}), file=sys.stderr)
     return 0

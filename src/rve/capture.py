@@ -6,7 +6,8 @@
 * ``rve.truth.jsonl``: the true state of every vehicle at every 10 Hz sample
   (:func:`hil.capture.schema.truth`), up to the last host tick sent;
 * ``rve.end.json``: how the run ended (:func:`hil.capture.schema.end`), written as it
-  ends; missing when the RVE was killed;
+  ends, after the other files are closed (:meth:`Capture.end`); missing when the RVE was
+  killed;
 * ``rve.schedule.jsonl``: every scheduled message with its channel decision and, when
   sent, its wall-clock send time and lateness (:func:`hil.capture.schema.scheduled`,
   :func:`hil.capture.schema.sent`);
@@ -14,7 +15,9 @@
   wsmp`` Ethernet II frames of ethertype 0x88DC as over the air) or ``rve.frames.asc`` and
   ``rve.frames.log`` (every raw CAN frame, :func:`hil.capture.can_log`).
 
-Every file is append-only; the replay flushes them at every host tick.
+Every file is append-only; the replay flushes them at every host tick.  A write that
+fails (a full disk) raises :class:`hil.errors.WriteError` naming the file; the others
+are flushed and closed all the same, and the end record names the failure.
 """
 
 from __future__ import annotations
@@ -37,10 +40,12 @@ from hil.capture import (
     can_log,
     claim,
     ethernet,
+    finish,
     schema,
     udp_packet,
     versions,
 )
+from hil.errors import write_error
 from rve.framing import framing_of
 
 __all__ = ["Capture", "can_channel"]
@@ -155,14 +160,22 @@ class Capture:
 
     def write_end(self, exit: str, reason: str, **counts: int) -> None:
         """How the run ended (``rve.end.json``, :func:`hil.capture.schema.end`)."""
-        with open(self.dir / schema.RVE_END, "w", encoding="utf-8") as f:
-            json.dump(schema.end(self.run_id, exit, reason, self.started, time.time(),
-                                 **counts), f, indent=1)
+        path = self.dir / schema.RVE_END
+        try:
+            with open(path, "w", encoding="utf-8") as f:
+                json.dump(schema.end(self.run_id, exit, reason, self.started, time.time(),
+                                     **counts), f, indent=1)
+        except OSError as err:
+            raise write_error(err, path) from None
 
-    def close(self) -> None:
-        self.schedule.close()
-        self.truth.close()
-        if self.pcap is not None:
-            self.pcap.close()
-        if self.canlog is not None:
-            self.canlog.stop()
+    def end(self, exit: str, reason: str, **counts: int) -> None:
+        """Flush and close every file (all of them, even when one fails), then write how
+        the run ended; a file that could not be written raises once the end record says
+        so (the run's own error, when it had one, stays its reason)."""
+        failure = finish(f for f in (self.schedule, self.truth, self.pcap, self.canlog)
+                         if f is not None)
+        if failure is not None and exit != "error":
+            exit, reason = schema.failed(failure)
+        self.write_end(exit, reason, **counts)
+        if failure is not None:
+            raise failure

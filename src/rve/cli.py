@@ -69,17 +69,23 @@ raw frames back to back.  This is the inverse of `captures decode`."""
 
 def _encode(args: argparse.Namespace) -> int:
     out = sys.stdout.buffer
-    for lineno, line in enumerate(args.input, 1):
-        if not line.strip():
-            continue
-        try:
-            frame = encode_frame(bsm_from_record(json.loads(line)))
-        except (ValueError, EncodeError) as err:  # JSONDecodeError is a ValueError
-            print(f"rve encode: line {lineno}: {err}", file=sys.stderr)
-            return 1
-        if args.ieee1609:
-            frame = wrap_unsecured(frame)
-        out.write(frame if args.binary else frame.hex().upper().encode() + b"\n")
+    where = "" if args.input is sys.stdin else f"{args.input.name}: "
+    try:
+        for lineno, line in enumerate(args.input, 1):
+            if not line.strip():
+                continue
+            try:
+                frame = encode_frame(bsm_from_record(json.loads(line)))
+            except (ValueError, EncodeError) as err:  # JSONDecodeError is a ValueError
+                print(f"rve encode: {where}line {lineno}: {err}", file=sys.stderr)
+                return 1
+            if args.ieee1609:
+                frame = wrap_unsecured(frame)
+            out.write(frame if args.binary else frame.hex().upper().encode() + b"\n")
+    except UnicodeDecodeError as err:  # reading the input: the loop's own are caught above
+        print(f"rve encode: {where or 'standard input: '}not UTF-8 text (byte "
+              f"{err.object[err.start]:#04x})", file=sys.stderr)
+        return 1
     out.flush()
     return 0
 

@@ -102,7 +102,13 @@ def command(args: argparse.Namespace) -> int:
     if not (args.rate > 0 and args.duration > 0 and args.speed > 0):
         print("rve flood: --rate, --duration and --speed must be positive", file=sys.stderr)
         return 2
-    times, frames = _frames(args) if args.mix.get("copy") else ([], [])
+    from hil.datasets import DatasetError
+
+    try:
+        times, frames = _frames(args) if args.mix.get("copy") else ([], [])
+    except DatasetError as err:
+        print(f"rve flood: {err}", file=sys.stderr)
+        return 2
     print(json.dumps(flood(args, times, frames)), flush=True)
     return 0
 

@@ -21,7 +21,10 @@ SignedData, see :class:`Signer`), or that inside an IEEE 1609.3 WSMP message (``
 the pcapng capture then holds Ethernet frames of ethertype 0x88DC, as over the air).
 
 Errors: a bad dataset, flag or config file prints one line and exits 2, and so does an
-unreachable address or bus.  SIGINT and SIGTERM stop the replay, flush and exit 0.
+unreachable address or bus or a capture directory that cannot be made or written.  A
+capture file that cannot be written during the replay (a full disk) ends it with one line
+naming the file and exit status 1; every file keeps what was written before, and
+``rve.end.json`` names the error.  SIGINT and SIGTERM stop the replay, flush and exit 0.
 """
 
 
@@ -29,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
 import signal
 import sys
@@ -40,6 +44,7 @@ from catc.channel import ChannelConfig
 from catc.replay import Plan, plan, temp_id
 from hil.capture import schema
 from hil.datasets import load_table
+from hil.errors import WriteError, describe
 from hil.pacing import Pacer
 from rve.attacking import Attacking
 from rve.capture import Capture
@@ -76,8 +81,8 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
         sender = await _open_sender(args, on_frame)
     except BaseException as err:
         if cap is not None:
-            cap.close()
-            cap.write_end(*schema.failed(err))
+            with contextlib.suppress(OSError):  # err, not a capture file, ends the run
+                cap.end(*schema.failed(err))
         raise
     stop = asyncio.Event()
     stopped_by: list[str] = []  # the signal that stopped the replay
@@ -85,6 +90,7 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, lambda s=sig: (stopped_by.append(s.name), stop.set()))
     ending = ("error", "")
+    raised = False  # an exception ends the run: it is the one to raise
     events = the_plan.events
     tids = [temp_id(v) for v in the_plan.vehicles]
     t0 = float(events["time"][0]) if len(events) else 0.0
@@ -148,19 +154,21 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
             i = j
         ending = ("signal", stopped_by[0]) if stopped_by else ("clean", "replayed")
     except BaseException as err:
-        ending = schema.failed(err)
+        ending, raised = schema.failed(err), True
         raise
     finally:
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.remove_signal_handler(sig)
         await sender.aclose()
-        if cap is not None:
-            cap.flush()
-            cap.close()
-            cap.write_end(*ending, sent=counts["sent"], dropped=counts["dropped"],
-                          host_frames=counts["host"])
         last = float(events["time"][min(i, len(events) - 1)]) if len(events) else 0.0
         progress.update(last, counts["sent"], counts["dropped"], 0.0, final=True)
+        if cap is not None:
+            try:  # every file flushed and closed, even after a failed write
+                cap.end(*ending, sent=counts["sent"], dropped=counts["dropped"],
+                        host_frames=counts["host"])
+            except OSError:
+                if not raised:
+                    raise
     counts["interrupted"] = int(stop.is_set())
     if signer is not None:
         counts.update(signer.counts)
@@ -207,7 +215,13 @@ def run(args: argparse.Namespace) -> int:
         return 2
     try:
         counts = asyncio.run(replay(args, the_plan, signer=signer))
-    except (TransportError, OSError) as err:  # OSError: the capture directory
+    except WriteError as err:  # a capture file, during the run
+        print(f"rve run: {err}", file=sys.stderr)
+        return 1
+    except OSError as err:  # the capture directory
+        print(f"rve run: {describe(err)}", file=sys.stderr)
+        return 2
+    except TransportError as err:
         print(f"rve run: {err}", file=sys.stderr)
         return 2
     print(json.dumps({"sent": counts["sent"], "dropped": counts["dropped"],

@@ -110,17 +110,19 @@ def stills(the_run: Run, times: list[float], out: Path, window: float = 60.0) ->
 
 
 def run(args: argparse.Namespace) -> int:
-    """``captures plot`` with the parsed ``args``; the exit status."""
+    """``captures plot`` with the parsed ``args``; the exit status.  A capture file that
+    cannot be read, or an ``--out`` that cannot be written, is an OSError that
+    :func:`hil.cliargs.dispatch` prints in one line (``FILE: reason``, status 1)."""
     try:
         _check_flags(args)
         the_run = load_run(args.dir)
         times = _times(args.at, the_run)
-        out = args.out if args.out is not None else Path(args.dir) / "plots"
-        out.mkdir(parents=True, exist_ok=True)
-    except (ValueError, KeyError, TypeError, OSError) as err:  # CaptureError too
+    except (ValueError, KeyError, TypeError) as err:  # CaptureError too
         msg = str(err) if not isinstance(err, KeyError) else f"a capture file lacks {err}"
         print(f"captures plot: {msg}", file=sys.stderr)
         return 2
+    out = args.out if args.out is not None else Path(args.dir) / "plots"
+    out.mkdir(parents=True, exist_ok=True)
     written = stills(the_run, times, out, window=args.window)
     for flag, name, writer in ((args.gif, "run.gif", "pillow"), (args.mp4, "run.mp4",
                                                                   "ffmpeg")):

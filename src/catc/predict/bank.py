@@ -42,23 +42,26 @@ class KernelBank:
                            "heading": self.heading.tolist(), **self.meta}, indent=1)
 
     @classmethod
-    def from_json(cls, text: str) -> KernelBank:
+    def from_json(cls, text: str, source: str = "kernel bank") -> KernelBank:
+        """The bank in ``text``, the content of ``source`` (a file's name), which each
+        ValueError names."""
         try:
             data = json.loads(text)
         except json.JSONDecodeError as exc:
-            raise ValueError(f"kernel bank is not JSON: {exc}") from None
+            raise ValueError(f"{source}: not valid JSON: line {exc.lineno} col {exc.colno}: "
+                             f"{exc.msg}") from None
         if not isinstance(data, dict) or data.get("format") != FORMAT:
-            raise ValueError(f"kernel bank format must be {FORMAT!r}")
+            raise ValueError(f"{source}: kernel bank format must be {FORMAT!r}")
         meta = {k: v for k, v in data.items() if k not in ("format", "speed", "heading")}
         try:
             return cls(np.asarray(data["speed"], dtype=float),
                        np.asarray(data["heading"], dtype=float), meta)
         except KeyError as exc:
-            raise ValueError(f"kernel bank has no {exc.args[0]!r}") from None
+            raise ValueError(f"{source}: kernel bank has no {exc.args[0]!r}") from None
 
 
 @lru_cache(maxsize=1)
 def default_bank() -> KernelBank:
     """The bank shipped with the package (trained on ../shared/data; see its ``meta``)."""
-    text = resources.files("catc.predict").joinpath("default_bank.json").read_text()
-    return KernelBank.from_json(text)
+    path = resources.files("catc.predict").joinpath("default_bank.json")
+    return KernelBank.from_json(path.read_text(), str(path))

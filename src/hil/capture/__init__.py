@@ -24,10 +24,11 @@ from hil.capture.writers import (
     can_log,
     claim,
     ethernet,
+    finish,
     udp_packet,
     versions,
 )
 
 __all__ = ["CanLogs", "Capture", "CaptureError", "JsonLines", "PcapngWriter", "can_log",
-           "claim", "clock_offset", "ethernet", "read_capture", "read_json", "read_lines", "schema",
-           "truth_in_frame", "udp_packet", "versions"]
+           "claim", "clock_offset", "ethernet", "finish", "read_capture", "read_json",
+           "read_lines", "schema", "truth_in_frame", "udp_packet", "versions"]

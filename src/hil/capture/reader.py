@@ -3,7 +3,8 @@ names, for ``captures score``, ``view`` and ``plot``.
 
 A JSON-lines file may end in a torn line (the daemon was killed while writing it): that
 line is dropped.  A torn line anywhere else is an error, and so is a missing file a reader
-needs; :class:`CaptureError` says which, in one line.
+needs, or one that is not UTF-8 text or JSON; :class:`CaptureError` says which, in one
+line.  A file that cannot be read raises an :class:`OSError` that names it.
 """
 
 from __future__ import annotations
@@ -31,12 +32,13 @@ from hil.capture.schema import (
     RVE_SCHEDULE,
     RVE_TRUTH,
 )
+from hil.errors import InputError, load_json, read_text
 
 __all__ = ["Capture", "CaptureError", "clock_offset", "read_capture", "read_json",
            "read_lines", "truth_in_frame"]
 
 
-class CaptureError(ValueError):
+class CaptureError(InputError):
     """A capture that cannot be read or joined; ``str()`` is one line."""
 
 
@@ -45,7 +47,10 @@ def read_lines(path: Path) -> list[dict[str, Any]]:
     path = Path(path)
     if not path.is_file():
         raise CaptureError(f"{path}: missing (is this a capture directory of rve and obu?)")
-    lines = path.read_text(encoding="utf-8").splitlines()
+    try:
+        lines = read_text(path).splitlines()
+    except InputError as err:
+        raise CaptureError(str(err)) from None
     out = []
     for n, line in enumerate(lines, 1):
         try:
@@ -57,11 +62,17 @@ def read_lines(path: Path) -> list[dict[str, Any]]:
 
 
 def read_json(path: Path) -> dict[str, Any]:
-    """A capture's JSON file (a config or the counters)."""
+    """A capture's JSON file (a config, an end record or the counters): an object."""
     path = Path(path)
     if not path.is_file():
         raise CaptureError(f"{path}: missing (is this a capture directory of rve and obu?)")
-    return json.loads(path.read_text())
+    try:
+        doc = load_json(path)
+    except InputError as err:
+        raise CaptureError(str(err)) from None
+    if not isinstance(doc, dict):
+        raise CaptureError(f"{path}: not a JSON object")
+    return doc
 
 
 @dataclass

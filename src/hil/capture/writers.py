@@ -17,6 +17,10 @@ but its last tick.
   (``(1700000000.123456) vcan0 6A0#0214...``, ``##<flags>`` for CAN FD) that can-utils'
   ``canplayer``/``log2asc`` and most CAN tooling read.  Both are line based and therefore
   survive a kill; BLF compresses whole blocks and would lose the tail.
+
+A write or flush that fails (a full disk, a file size limit) raises
+:class:`hil.errors.WriteError`, which names the file; :func:`finish` then flushes and
+closes every other file all the same, so that each keeps what was written before.
 """
 
 from __future__ import annotations
@@ -25,10 +29,13 @@ import ipaddress
 import json
 import os
 import struct
+from collections.abc import Iterable
 from pathlib import Path
 from typing import IO, Any
 
-__all__ = ["CanLogs", "JsonLines", "PcapngWriter", "can_log", "claim", "ethernet",
+from hil.errors import write_error
+
+__all__ = ["CanLogs", "JsonLines", "PcapngWriter", "can_log", "claim", "ethernet", "finish",
            "udp_packet", "versions"]
 
 _DAEMONS = {"rve": "an RVE", "obu": "an OBU"}
@@ -73,14 +80,26 @@ class _CaptureFile:
         encoding = None if "b" in mode else "utf-8"
         self._f: IO[Any] = open(self.path, mode, encoding=encoding)  # noqa: SIM115
 
+    def _put(self, data: Any) -> None:
+        try:
+            self._f.write(data)
+        except OSError as err:
+            raise write_error(err, self.path) from None
+
     def flush(self) -> None:
         """Hand everything written so far to the OS (a kill -9 no longer loses it)."""
-        self._f.flush()
+        try:
+            self._f.flush()
+        except OSError as err:
+            raise write_error(err, self.path) from None
 
     def close(self) -> None:
+        """Flush and close (closed even when the flush fails)."""
         if not self._f.closed:
-            self._f.flush()
-            self._f.close()
+            try:
+                self._f.close()
+            except OSError as err:
+                raise write_error(err, self.path) from None
 
 
 class JsonLines(_CaptureFile):
@@ -91,7 +110,7 @@ class JsonLines(_CaptureFile):
         self.lines = 0
 
     def write(self, record: dict[str, Any]) -> None:
-        self._f.write(json.dumps(record, separators=(",", ":"), allow_nan=True) + "\n")
+        self._put(json.dumps(record, separators=(",", ":"), allow_nan=True) + "\n")
         self.lines += 1
 
 
@@ -155,18 +174,18 @@ class PcapngWriter(_CaptureFile):
         super().__init__(path, "wb")
         shb = struct.pack("<IHHq", 0x1A2B3C4D, 1, 0, -1) + _option(1, comment.encode()) \
             + _option(0, b"")
-        self._f.write(_block(0x0A0D0D0A, shb))
+        self._put(_block(0x0A0D0D0A, shb))
         for linktype in (self.LINKTYPE_RAW, self.LINKTYPE_ETHERNET):
             idb = struct.pack("<HHI", linktype, 0, 65535) + _option(9, b"\x06") \
                 + _option(0, b"")
-            self._f.write(_block(0x00000001, idb))
-        self._f.flush()
+            self._put(_block(0x00000001, idb))
+        self.flush()
         self.packets = 0
 
     def write(self, packet: bytes, t_unix: float, interface: int = 0) -> None:
         us = round(t_unix * 1e6)
         body = struct.pack("<IIIII", interface, us >> 32, us & 0xFFFFFFFF, len(packet), len(packet))
-        self._f.write(_block(0x00000006, body + packet + b"\x00" * (-len(packet) % 4)))
+        self._put(_block(0x00000006, body + packet + b"\x00" * (-len(packet) % 4)))
         self.packets += 1
 
 
@@ -188,11 +207,22 @@ class CanLogs:
 
     def flush(self) -> None:
         for w in self.writers:
-            w.file.flush()
+            try:
+                w.file.flush()
+            except OSError as err:
+                raise write_error(err, w.file.name) from None
 
     def stop(self) -> None:
+        """Flush and close every writer, even when one fails; then raise the first
+        failure."""
+        first: OSError | None = None
         for w in self.writers:
-            w.stop()
+            try:
+                w.stop()
+            except OSError as err:
+                first = first or write_error(err, w.file.name)
+        if first is not None:
+            raise first
 
 
 def can_log(stem: str | os.PathLike, channel: str) -> CanLogs:
@@ -202,3 +232,15 @@ def can_log(stem: str | os.PathLike, channel: str) -> CanLogs:
     Path(stem).parent.mkdir(parents=True, exist_ok=True)
     return CanLogs([can.ASCWriter(f"{stem}.asc"),
                     can.CanutilsLogWriter(f"{stem}.log", channel=channel)])
+
+
+def finish(files: Iterable[Any], failure: OSError | None = None) -> OSError | None:
+    """Close every file of ``files`` (writers above, :class:`CanLogs`), each after its
+    flush, even when one fails, so that the others keep everything written to them; the
+    first failure (``failure``, when the run already had one), or None."""
+    for f in files:
+        try:
+            f.stop() if isinstance(f, CanLogs) else f.close()
+        except OSError as err:
+            failure = failure or err
+    return failure

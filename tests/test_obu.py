@@ -411,11 +411,11 @@ def test_obu_sigterm_flushes_and_kill_9_keeps_all_but_the_last_tick(tmp_path):
         sender = subprocess.Popen([PY, "-m", "rve.cli", "run", "--to", f"127.0.0.1:{ports[0]}",
                                    "--host-to", f"127.0.0.1:{ports[1]}", "--no-progress"],
                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        ticks = cap / "obu.ticks.jsonl"
+        ticks_file = cap / "obu.ticks.jsonl"
         try:
             deadline = time.monotonic() + 60  # some ticks in, then the signal
             while time.monotonic() < deadline and obu.poll() is None and not (
-                    ticks.exists() and sum(1 for _ in ticks.open()) >= 20):
+                    ticks_file.exists() and sum(1 for _ in ticks_file.open()) >= 20):
                 time.sleep(0.05)
             os.kill(obu.pid, sig)
             obu.wait(20)
@@ -424,7 +424,7 @@ def test_obu_sigterm_flushes_and_kill_9_keeps_all_but_the_last_tick(tmp_path):
             sender.wait(10)
             if obu.poll() is None:
                 obu.kill()
-        ticks = [json.loads(line) for line in ticks.open()]
+        ticks = [json.loads(line) for line in ticks_file.open()]
         tracks = [json.loads(line) for line in (cap / "obu.tracks.jsonl").open()]
         assert len(ticks) > 10
         # every tick but possibly the last has all its track rows

@@ -8,8 +8,11 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import io
 import json
+import os
 import random
+import select
 import shutil
 import socket
 import subprocess
@@ -38,21 +41,39 @@ from tests.test_transport import netns  # noqa: F401  (fixture)
 PY = sys.executable
 
 
+#: What ``obu run`` prints on stderr once it receives (its sockets or its bus are open).
+READY = b"obu: ready ("
+
+
+def wait_ready(proc: subprocess.Popen, timeout: float = 60.0) -> str:
+    """Read ``proc``'s stderr (unbuffered, from its descriptor) until the OBU's ready line,
+    its exit or ``timeout`` s; what was read, which ``finish`` puts back in front."""
+    fd, seen = proc.stderr.fileno(), b""
+    deadline = time.monotonic() + timeout
+    while not any(line.startswith(READY) for line in seen.split(b"\n")[:-1]):
+        left = deadline - time.monotonic()
+        if left <= 0:
+            break
+        if not select.select([fd], [], [], min(left, 0.5))[0]:
+            continue
+        chunk = os.read(fd, 65536)
+        if not chunk:  # end of file: the OBU exited
+            break
+        seen += chunk
+    return seen.decode(errors="replace")
+
+
 def start_obu(cap: Path, ports: list[int], *extra: str, prefix: tuple[str, ...] = ()):
     proc = subprocess.Popen([*prefix, PY, "-m", "obu.cli", "run", "--listen",
                              f"127.0.0.1:{ports[0]}", "--host-listen", f"127.0.0.1:{ports[1]}",
                              "--capture", str(cap), "--idle-exit", "2", "--no-progress",
                              *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    # the RVE starts sending once both sockets are bound (start-up with --verify and its
-    # trust store takes over a second on a busy machine); a CAN bus, or a socket in
-    # another network namespace, is not in this namespace's /proc/net/udp: a fixed wait
-    if "can" in extra or prefix:
-        time.sleep(1.5)
-        bound = True
-    else:
-        bound = wait_bound(ports[:2], alive=lambda: proc.poll() is None)
-    assert proc.poll() is None, proc.communicate()
-    assert bound, "the OBU did not bind its ports"
+    # the RVE starts sending once the OBU receives (start-up with --verify and its trust
+    # store takes over a second on a busy machine): its ready line, printed once its UDP
+    # sockets or its CAN bus are open, in this network namespace or another
+    proc.early_stderr = wait_ready(proc)
+    assert proc.poll() is None, (proc.early_stderr, proc.communicate())
+    assert READY.decode() in proc.early_stderr, f"no ready line: {proc.early_stderr!r}"
     return proc
 
 
@@ -70,6 +91,7 @@ def finish(proc) -> tuple[str, str]:
     finally:
         if proc.poll() is None:
             proc.kill()
+    err = getattr(proc, "early_stderr", "") + err  # start_obu read up to the ready line
     assert proc.returncode == 0, err
     return out, err
 
@@ -338,13 +360,19 @@ def test_can_end_to_end_on_the_virtual_bus(tmp_path):
     table = load_table(rve_args.dataset, None)
     the_plan = plan(table, ChannelConfig(per=0.5), 3, None, 25.0)
 
+    err = io.StringIO()
+
     async def main():
         serving = asyncio.create_task(obu_run.serve(obu_args))
-        await asyncio.sleep(0.3)
+        deadline = time.monotonic() + 30
+        while READY.decode() not in err.getvalue():  # its bus is open: the RVE may send
+            assert not serving.done() and time.monotonic() < deadline, err.getvalue()
+            await asyncio.sleep(0.01)
         counts = await rve_run.replay(rve_args, the_plan)
         return counts, await asyncio.wait_for(serving, 60)
 
-    with contextlib.redirect_stdout(open(tmp_path / "warnings.jsonl", "w")):
+    with contextlib.redirect_stdout(open(tmp_path / "warnings.jsonl", "w")), \
+            contextlib.redirect_stderr(err):
         counts, obu_counters = asyncio.run(main())
     assert obu_counters["frames_rv"] == counts["sent"]
     assert obu_counters["ticks"] == counts["host"]
@@ -390,8 +418,12 @@ def test_obu_sigterm_flushes_and_kill_9_keeps_all_but_the_last_tick(tmp_path):
         sender = subprocess.Popen([PY, "-m", "rve.cli", "run", "--to", f"127.0.0.1:{ports[0]}",
                                    "--host-to", f"127.0.0.1:{ports[1]}", "--no-progress"],
                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        ticks_file = cap / "obu.ticks.jsonl"
         try:
-            time.sleep(3.0)
+            deadline = time.monotonic() + 60  # some ticks in, then the signal
+            while time.monotonic() < deadline and obu.poll() is None and not (
+                    ticks_file.exists() and sum(1 for _ in ticks_file.open()) >= 20):
+                time.sleep(0.05)
             os.kill(obu.pid, sig)
             obu.wait(20)
         finally:
@@ -399,7 +431,7 @@ def test_obu_sigterm_flushes_and_kill_9_keeps_all_but_the_last_tick(tmp_path):
             sender.wait(10)
             if obu.poll() is None:
                 obu.kill()
-        ticks = [json.loads(line) for line in (cap / "obu.ticks.jsonl").open()]
+        ticks = [json.loads(line) for line in ticks_file.open()]
         tracks = [json.loads(line) for line in (cap / "obu.tracks.jsonl").open()]
         assert len(ticks) > 10
         # every tick but possibly the last has all its track rows

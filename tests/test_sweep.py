@@ -216,7 +216,9 @@ def test_cli_sweep_bad_flags_fail_in_one_line(args, message):
 @pytest.mark.slow
 def test_live_cells_through_the_daemons_agree_with_the_offline_simulator(tmp_path):
     """rve and obu as separate processes over UDP on 127.0.0.1, then `captures score`,
-    against the offline CA-TC on the same trip, cell, seed and predictor."""
+    against the offline CA-TC on the same trip, cell, seed and predictor: the same
+    (tick, RV) pairs, every estimated position equal to 1e-6 m (what the OBU's own
+    live-equals-offline test asks), the scores equal to their last decimal."""
     data = shared_path("ngsim-i80-pairs")
     out = tmp_path / "rows.json"
     r = _cli("sweep", "--dataset", f"ngsim:{data}", "--max-trips", "1", "--per", "0,60",
@@ -226,9 +228,38 @@ def test_live_cells_through_the_daemons_agree_with_the_offline_simulator(tmp_pat
     live = json.loads(out.read_text())["live"]
     assert [(c["per"], c["rate"]) for c in live] == [(60.0, 10.0), (0.0, 4.0)]
     for c in live:
+        tracks = c["agree"]["tracks"]
+        assert tracks["compared"] > 100, tracks
+        assert tracks["live_only"] == tracks["offline_only"] == 0, tracks
+        assert tracks["max_abs_diff_m"] <= 1e-6, tracks
+        assert abs(c["agree"]["pte95_m"]) <= 1e-4 and abs(c["agree"]["fcw_accuracy"]) <= 1e-4
         assert c["agree"]["ok"], c
         assert c["live"]["dropped"] > 0 if c["per"] else c["live"]["dropped"] == 0
         assert c["live"]["received"] == c["live"]["sent"]
+
+
+def test_live_agreement_fails_on_positions_rounded_to_a_centimetre():
+    """`agree.ok` is round-off only: track positions 1 cm coarse fail it, though PTE95 and
+    the FCW accuracy (rounded to 4 decimals) and the counts agree."""
+    from captures.live import agreement, track_differences
+
+    rng = np.random.default_rng(0)
+    offline = {(round(0.1 * k, 3), 0x1A2B): (float(x), float(y))
+               for k, (x, y) in enumerate(rng.uniform(-200, 200, (50, 2)))}
+    scores = {"pte95_m": 0.1234, "fcw_accuracy": 0.98, "sent": 40, "dropped": 10}
+
+    def rows(digits):
+        return [{"t": t, "id": f"{tid:08X}", "x": round(x, digits), "y": round(y, digits)}
+                for (t, tid), (x, y) in offline.items()]
+
+    exact = track_differences(rows(7), offline)
+    assert exact["compared"] == 50 and exact["max_abs_diff_m"] <= 5e-8
+    assert agreement(scores, scores, exact)["ok"]
+    coarse = track_differences(rows(2), offline)
+    assert 1e-3 < coarse["max_abs_diff_m"] <= 5e-3
+    assert not agreement(scores, scores, coarse)["ok"]
+    assert not agreement(scores, scores, track_differences(rows(7)[1:], offline))["ok"]
+    assert not agreement(scores, dict(scores, pte95_m=0.1237), exact)["ok"]
 
 
 def test_report_from_a_sweep_is_self_contained_and_states_the_verdict(tmp_path):

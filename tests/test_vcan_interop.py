@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import shutil
 import signal
 import socket
@@ -40,6 +41,7 @@ from hil.datasets import load_table
 from hil.transport.can import HOST_IDS, RV_IDS
 from rve.framing import wire_frame
 from tests.conftest import shared_path
+from tests.test_obu import READY, wait_ready
 from tests.test_rve_can import BURST, PER, SEED, _dataset, _expected
 from tests.test_transport import vcan_interface
 
@@ -71,15 +73,64 @@ def _can(iface: str, fd: bool) -> list[str]:
             *(["--can-fd"] if fd else [])]
 
 
+#: The kernel's CAN receive lists: a line per receive filter, its device first.
+CAN_PROC = Path("/proc/net/can")
+
+
+def _filters(iface: str) -> int:
+    """How many receive filters sockets have on ``iface`` (a CAN socket bound to it has at
+    least one: ``/proc/net/can/rcvlist_*``), or -1 where the kernel lists none of them."""
+    lists = sorted(CAN_PROC.glob("rcvlist_*"))
+    if not lists:
+        return -1
+    n = 0
+    for path in lists:
+        with contextlib.suppress(OSError):
+            n += sum(1 for line in path.read_text().splitlines()
+                     if len(line.split()) >= 6 and line.split()[0] == iface)
+    return n
+
+
+def _has_socket(pid: int) -> bool:
+    with contextlib.suppress(OSError):
+        return any(os.readlink(f"/proc/{pid}/fd/{fd}").startswith("socket:")
+                   for fd in os.listdir(f"/proc/{pid}/fd"))
+    return False
+
+
+def _wait_bound(proc: subprocess.Popen, iface: str, before: int, timeout: float = 60.0):
+    """Until ``proc``, started when ``iface`` had ``before`` receive filters, has bound its
+    socket: a new filter on ``iface`` (where the kernel lists them; else a socket among its
+    file descriptors).  Bounded: a tool that exits or never binds fails the test."""
+    deadline = time.monotonic() + timeout
+    while not (_filters(iface) > before if before >= 0 else _has_socket(proc.pid)):
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() < deadline, f"{proc.args} did not bind to {iface}"
+        time.sleep(0.01)
+
+
+def _lines(path: Path) -> int:
+    return path.read_text().count("\n") if path.exists() else 0
+
+
+def _wait_lines(want: dict[Path, int], timeout: float = 30.0) -> None:
+    """Until each file has at least its count of whole lines, or ``timeout`` s (then the
+    test's own assertions say what is missing)."""
+    deadline = time.monotonic() + timeout
+    while any(_lines(f) < n for f, n in want.items()) and time.monotonic() < deadline:
+        time.sleep(0.05)
+
+
 @contextlib.contextmanager
-def _tool(cmd: list[str], out: Path):
-    """A can-utils program writing line-buffered to ``out``, stopped with SIGINT."""
+def _tool(cmd: list[str], out: Path, iface: str):
+    """A can-utils program on ``iface`` writing line-buffered to ``out``, once its socket
+    is bound; stopped with SIGINT."""
+    before = _filters(iface)
     with open(out, "w") as f:
         proc = subprocess.Popen(["stdbuf", "-oL", *cmd], stdout=f, stderr=subprocess.PIPE,
-                                text=True)
+                                text=True)  # stdbuf execs the tool: the same pid
     try:
-        time.sleep(0.5)  # C tools bind their socket at once
-        assert proc.poll() is None, proc.communicate()
+        _wait_bound(proc, iface, before)
         yield proc
     finally:
         if proc.poll() is None:
@@ -125,15 +176,18 @@ def test_kernel_isotp_receives_exactly_the_rves_schedule_and_candump_agrees(vcan
     want = {"rv": sorted(wire_frame(e, the_plan, False) for e in ev if not e["host"]),
             "host": sorted(wire_frame(e, the_plan, False) for e in ev if e["host"])}
     rv_out, host_out, dump = tmp_path / "rv.txt", tmp_path / "host.txt", tmp_path / "dump.log"
-    with (_tool(["candump", "-L", vcan], dump),
+    with (_tool(["candump", "-L", vcan], dump, vcan),
           _tool(["isotprecv", "-l", *_ll_opts(fd), "-s", f"{RV_IDS[1]:03X}",
-                 "-d", f"{RV_IDS[0]:03X}", vcan], rv_out),
+                 "-d", f"{RV_IDS[0]:03X}", vcan], rv_out, vcan),
           _tool(["isotprecv", "-l", *_ll_opts(fd), "-s", f"{HOST_IDS[1]:03X}",
-                 "-d", f"{HOST_IDS[0]:03X}", vcan], host_out)):
+                 "-d", f"{HOST_IDS[0]:03X}", vcan], host_out, vcan)):
         summary = _rve(vcan, fd, tmp_path / "cap", "--dataset", _dataset(), "--per",
                        str(PER * 100), "--burst", str(BURST), "--seed", str(SEED),
                        "--duration", str(DURATION), "--asap")
-        time.sleep(0.5)
+        # until the tools have written what reached them: every PDU, every frame the
+        # RVE logged (its data frames and the Flow Controls it received)
+        _wait_lines({rv_out: len(want["rv"]), host_out: len(want["host"]),
+                     dump: _lines(tmp_path / "cap" / "rve.frames.log")})
     got = {"rv": _pdus(rv_out), "host": _pdus(host_out)}
     # The kernel reassembled exactly the schedule's undropped frames, octet for octet.
     assert sorted(got["rv"]) == want["rv"] and sorted(got["host"]) == want["host"]
@@ -175,11 +229,9 @@ def _start_obu(iface: str, fd: bool, capture: Path, *extra: str) -> subprocess.P
     proc = subprocess.Popen([PY, "-m", "obu.cli", "run", *_can(iface, fd), "--predictor",
                              "ca", "--capture", str(capture), "--no-progress", *extra],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + 120  # its counters appear once it is receiving
-    while not (capture / "obu.counters.json").exists():
-        assert proc.poll() is None, proc.communicate()
-        assert time.monotonic() < deadline, "obu run did not start"
-        time.sleep(0.1)
+    proc.early_stderr = wait_ready(proc, timeout=120)  # its bus is open
+    assert proc.poll() is None, (proc.early_stderr, proc.communicate())
+    assert READY.decode() in proc.early_stderr, f"obu run did not start: {proc.early_stderr}"
     return proc
 
 
@@ -197,6 +249,7 @@ def _stop(proc: subprocess.Popen, idle_exit: bool = False) -> tuple[str, str]:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+    err = getattr(proc, "early_stderr", "") + err  # _start_obu read up to the ready line
     assert proc.returncode == 0, err
     return out, err
 
@@ -224,7 +277,11 @@ def test_kernel_isotp_sends_real_bsms_to_the_obu(vcan, fd, tmp_path):
         while _rx_count(tmp_path) < n_rv:  # the replay's RV frames, taken at host ticks
             assert time.monotonic() < deadline, "the OBU did not take every frame"
             time.sleep(0.2)
-        time.sleep(1.0)
+        # and the deployed BSMs after them (no host frame follows: counted, not ticked;
+        # the counters file is rewritten every second)
+        while _counter(tmp_path, "frames_rv") < n_rv + len(deployed) \
+                and time.monotonic() < deadline:
+            time.sleep(0.2)
     finally:
         _stop(obu)
     rx = [json.loads(line) for line in (tmp_path / "obu.rx.jsonl").open()]
@@ -235,6 +292,12 @@ def test_kernel_isotp_sends_real_bsms_to_the_obu(vcan, fd, tmp_path):
     assert c["frames_rv"] == n_rv + len(deployed) and c.get("decode_errors", 0) == 0
     assert c["transport_bytes"] == sum(len(f) for _, f in replay) + sum(map(len, deployed))
     assert c.get("transport_errors", 0) == 0
+
+
+def _counter(capture: Path, name: str) -> int:
+    with contextlib.suppress(OSError, ValueError):
+        return json.loads((capture / "obu.counters.json").read_text()).get(name, 0)
+    return 0
 
 
 def _rx_count(capture: Path) -> int:

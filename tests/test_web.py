@@ -5,9 +5,13 @@ the capture.  Screenshots go to ``out/test-artifacts/``."""
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import json
+import math
 import subprocess
 import sys
+import threading
 import time
 import urllib.error
 import urllib.request
@@ -53,6 +57,34 @@ def _wait_http(url: str, seconds: float = 10.0) -> None:
         except OSError:
             time.sleep(0.1)
     raise AssertionError(f"{url} did not answer")
+
+
+@contextlib.contextmanager
+def _serve_replay(ticks: list[dict], tracks: list[dict]):
+    """The page in replay mode over hand-made ticks and tracks (``obu.web.Replay``), served
+    from a thread of this process: its base URL."""
+    from obu.web import Replay, make_app, start
+
+    port, ready = _port(), threading.Event()
+    loop = asyncio.new_event_loop()
+
+    def main() -> None:
+        asyncio.set_event_loop(loop)
+        runner = loop.run_until_complete(start(
+            make_app(replay=Replay(ticks, tracks, [], None, {})), "127.0.0.1", port))
+        ready.set()
+        loop.run_forever()
+        loop.run_until_complete(runner.cleanup())
+        loop.close()
+
+    thread = threading.Thread(target=main, daemon=True)
+    thread.start()
+    assert ready.wait(10), "the replay server did not start"
+    try:
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        loop.call_soon_threadsafe(loop.stop)
+        thread.join(10)
 
 
 @pytest.fixture(scope="module")
@@ -180,3 +212,84 @@ def test_captures_view_in_chromium(browser, tmp_path):
     bad = subprocess.run([PY, "-m", "captures.cli", "view", str(tmp_path / "nothing")],
                          capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1, bad.stderr
+
+
+#: The zone colours of app.js (COLORS) by zone [ahead, lateral lane code, direction].
+_ZONES = {"centre": ([True, 2, 0], (0xD6, 0x27, 0x28)),
+          "left": ([True, 1, 0], (0x1F, 0x77, 0xB4)),
+          "right": ([True, 3, 0], (0x2C, 0xA0, 0x2C)),
+          "oncoming": ([True, 2, 1], (0x94, 0x67, 0xBD))}
+#: A known tick: the host at (40, 20) m heading 30 degrees, four fresh RVs, none near the
+#: diagonal x = y, so that each one's swapped position (y, x) is far from every vehicle.
+_HOST = (40.0, 20.0, 30.0)
+_RVS = [("0000000A", 60.0, 30.0, "centre"), ("0000000B", 25.0, 5.0, "left"),
+        ("0000000C", 35.0, 50.0, "right"), ("0000000D", 55.0, 15.0, "oncoming")]
+
+
+def _pixels(page, points: list[tuple[float, float]], half: int = 2) -> list[list[tuple]]:
+    """The canvas' RGB pixels (getImageData) of a (2 half + 1)-square around each point."""
+    return page.evaluate(
+        """([points, half]) => {
+             const m = document.getElementById('map'), ctx = m.getContext('2d');
+             return points.map(([x, y]) => {
+               const d = ctx.getImageData(Math.floor(x) - half, Math.floor(y) - half,
+                                          2 * half + 1, 2 * half + 1).data;
+               const out = [];
+               for (let i = 0; i < d.length; i += 4) out.push([d[i], d[i + 1], d[i + 2]]);
+               return out;
+             });
+           }""", [points, half])
+
+
+def _to_pixel(view: dict, x: float, y: float) -> tuple[float, float]:
+    """World ENU (m) to canvas px, computed here from the page's transform parameters
+    (scale k in px/m, origin ox/oy, rotation a, the host at hx/hy): east right and north
+    up, turned by a (the host's heading in the host frame)."""
+    dx, dy = x - view["hx"], y - view["hy"]
+    c, s = math.cos(view["a"]), math.sin(view["a"])
+    return view["ox"] + view["k"] * (dx * c - dy * s), view["oy"] - view["k"] * (dx * s + dy * c)
+
+
+def test_live_view_draws_each_rv_at_its_pixel(browser):
+    """Each RV of a known tick is drawn in its zone's colour at the pixel its position maps
+    to (read back from the canvas), and not at its swapped position (y, x); in the host
+    frame (turned by the host's heading) and north-up."""
+    hx, hy, heading = _HOST
+    ticks = [{"t": 12.3, "sec_mark": 12300, "host": [hx, hy], "host_heading": heading,
+              "host_speed": 10.0, "warnings": [], "tracked": len(_RVS)}]
+    tracks = [{"t": 12.3, "id": rid, "x": x, "y": y, "heading": heading, "speed": 10.0,
+               "zone": _ZONES[zone][0], "predicted_zone": _ZONES[zone][0], "fresh": True,
+               "age": 0.0, "source": "bsm", "predicted_x": x, "predicted_y": y}
+              for rid, x, y, zone in _RVS]
+    for _, x, y, _ in _RVS:  # the swapped points are at least 10 m from every vehicle
+        assert min(math.hypot(y - vx, x - vy) for vx, vy in
+                   [(hx, hy), *((r[1], r[2]) for r in _RVS)]) > 10
+    with _serve_replay(ticks, tracks) as base:
+        page = browser.new_page(viewport={"width": 1280, "height": 800})
+        try:
+            page.goto(base + "/")
+            page.wait_for_function("document.getElementById('map').dataset.t == '12.3'")
+            assert page.get_attribute("#map", "data-rvs") == str(len(_RVS))
+            for north_up in (False, True):
+                if north_up:
+                    page.click("#hostframe")
+                view = page.evaluate("() => { const v = liveView.view(); return {k: v.k, "
+                                     "ox: v.ox, oy: v.oy, a: v.a, hx: v.hx, hy: v.hy}; }")
+                size = page.evaluate("() => [document.getElementById('map').width, "
+                                     "document.getElementById('map').height]")
+                assert math.isclose(view["a"], 0 if north_up else math.radians(heading))
+                at = [_to_pixel(view, x, y) for _, x, y, _ in _RVS]
+                swapped = [_to_pixel(view, y, x) for _, x, y, _ in _RVS]
+                for px, py in at + swapped:
+                    assert 10 < px < size[0] - 10 and 10 < py < size[1] - 10, (px, py, size)
+                for (rid, _, _, zone), here, there in zip(
+                        _RVS, _pixels(page, at), _pixels(page, swapped), strict=True):
+                    rgb = _ZONES[zone][1]
+
+                    def near(p, rgb=rgb):
+                        return max(abs(a - b) for a, b in zip(p, rgb, strict=True)) <= 3
+
+                    assert all(near(p) for p in here), (rid, zone, north_up, here)
+                    assert not any(near(p) for p in there), (rid, zone, north_up, there)
+        finally:
+            page.close()

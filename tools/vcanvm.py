@@ -29,9 +29,12 @@ Usage::
                                              # on this kernel if it has vcan, else in the VM
 
 The Debian packages it needs (qemu-system-x86, busybox-static, kmod, can-utils, iproute2)
-are installed by ``make debs``; ``make test-vcan`` runs the ``pytest`` subcommand.
+are installed by ``make debs``; ``make test-vcan`` runs the ``pytest`` subcommand.  Where
+the VM's own (qemu-system-x86, busybox-static, kmod) are missing, ``setup`` and ``pytest``
+install them with apt-get as ``make debs`` does when run as root with apt-get at hand.
 Exit status: the command's; 2 on a set-up error (one line on stderr); ``pytest`` exits 0
-with a SKIPPED line naming the reason where neither the kernel nor a VM can give vcan.
+with a SKIPPED line naming the reason only where neither the kernel nor a VM can give
+vcan (the packages missing and not installable here: not root, or no apt-get).
 """
 
 from __future__ import annotations
@@ -96,10 +99,45 @@ def host_has_vcan() -> tuple[bool, str]:
     return True, "vcan on the running kernel"
 
 
-def _missing_tools() -> list[str]:
-    need = {"qemu-system-x86_64": "qemu-system-x86", "busybox": "busybox-static",
-            "modinfo": "kmod", "apt-get": "apt", "dpkg": "dpkg"}
-    return [pkg for tool, pkg in need.items() if shutil.which(tool) is None]
+#: The Debian packages the VM needs, as the Makefile's ``debs`` target names them, by the
+#: program each gives; and apt-get and dpkg themselves (for the kernel package).
+VM_PACKAGES = {"qemu-system-x86_64": "qemu-system-x86", "busybox": "busybox-static",
+               "modinfo": "kmod"}
+_APT = {"apt-get": "apt", "dpkg": "dpkg"}
+
+
+def _missing_tools(apt: bool = True) -> list[str]:
+    """The Debian packages of :data:`VM_PACKAGES` (and, with ``apt``, apt and dpkg, which
+    the set-up needs) whose program is not here; busybox counts only statically linked."""
+    missing = [pkg for tool, pkg in {**VM_PACKAGES, **(_APT if apt else {})}.items()
+               if shutil.which(tool) is None]
+    if "busybox-static" not in missing and _static_busybox() is None:
+        missing.append("busybox-static")
+    return missing
+
+
+def install_missing(apt: bool = True) -> tuple[list[str], str]:
+    """Install the missing packages of the VM (:func:`_missing_tools`) with apt-get where
+    this process can (root, apt-get at hand), as ``make debs`` does; ``(still missing,
+    why)``: empty when all are here, else the packages and one phrase saying why they
+    are not installed."""
+    missing = _missing_tools(apt)
+    if not missing:
+        return [], ""
+    if shutil.which("apt-get") is None or shutil.which("dpkg") is None:
+        return missing, "no apt-get here to install them"
+    if os.geteuid() != 0:
+        return missing, "not root, so not installed (make debs, as root)"
+    log(f"installing the Debian packages {' '.join(missing)} (apt-get)")
+    env = dict(os.environ, DEBIAN_FRONTEND="noninteractive")
+    _run(["apt-get", "update", "-q"], timeout=600, env=env)
+    got = _run(["apt-get", "install", "-y", "-q", "--no-install-recommends", *missing],
+               timeout=1800, env=env)
+    still = _missing_tools(apt)
+    if still:
+        last = (got.stderr.strip() or got.stdout.strip()).splitlines()[-1:] or ["?"]
+        return still, f"apt-get install failed: {last[0]}"
+    return [], ""
 
 
 def _is_static(path: Path) -> bool:
@@ -113,14 +151,21 @@ def _is_static(path: Path) -> bool:
                for i in range(phnum))
 
 
-def _busybox() -> Path:
+def _static_busybox() -> Path | None:
     """A statically linked busybox (busybox-static installs it as /bin/busybox)."""
     for candidate in ("/bin/busybox", "/usr/bin/busybox"):
         path = Path(candidate)
         if path.exists() and _is_static(path):
             return path
-    raise SetupError("no static busybox: install the Debian package busybox-static "
-                     "(make debs)")
+    return None
+
+
+def _busybox() -> Path:
+    path = _static_busybox()
+    if path is None:
+        raise SetupError("no static busybox: install the Debian package busybox-static "
+                         "(make debs)")
+    return path
 
 
 # --- set-up: the kernel and the initramfs --------------------------------------------
@@ -218,14 +263,19 @@ def _cpio(entries: list[tuple[str, int, bytes]]) -> bytes:
     return out.getvalue()
 
 
+def _cached() -> bool:
+    done = CACHE / "current"
+    return (done / "vmlinuz").exists() and (done / "initramfs.cpio.gz").exists()
+
+
 def setup(quiet: bool = False) -> Path:
     """Kernel image, modules and initramfs in the cache; returns their directory."""
     done = CACHE / "current"
-    if (done / "vmlinuz").exists() and (done / "initramfs.cpio.gz").exists():
+    if _cached():
         return done.resolve()
-    missing = _missing_tools()
+    missing, why = install_missing()
     if missing:
-        raise SetupError(f"missing Debian packages: {' '.join(missing)} (make debs)")
+        raise SetupError(f"missing Debian packages: {' '.join(missing)} ({why})")
     busybox = _busybox()
     package = _kernel_package()
     release = package.removeprefix("linux-image-")
@@ -337,6 +387,9 @@ def _remember_broken_kvm(why: str) -> None:
 def boot(cmd: list[str], timeout: float = DEFAULT_TIMEOUT, accel: str | None = None) -> int:
     """Run ``cmd`` in the VM in the current directory; its exit status."""
     kernel_dir = setup()
+    missing, why = install_missing(apt=False)  # QEMU, where it went since the set-up
+    if missing:
+        raise SetupError(f"missing Debian packages: {' '.join(missing)} ({why})")
     if accel is None:
         accel = "kvm" if _kvm_usable() else "tcg"
     with tempfile.TemporaryDirectory(prefix="catc-vm-") as exchange:
@@ -408,10 +461,17 @@ def boot(cmd: list[str], timeout: float = DEFAULT_TIMEOUT, accel: str | None = N
 
 # --- commands ------------------------------------------------------------------------
 
-def _can_vm() -> tuple[bool, str]:
-    missing = _missing_tools()
+def _can_vm(install: bool = False) -> tuple[bool, str]:
+    """Whether a VM can run here, and why; ``install``: install its missing Debian
+    packages first where root with apt-get (:func:`install_missing`)."""
+    apt = not _cached()  # the set-up downloads the kernel with apt-get
+    if install:
+        missing, why = install_missing(apt)
+    else:
+        missing = _missing_tools(apt)
+        why = "make debs, as root, or vcanvm.py pytest as root installs them"
     if missing:
-        return False, f"missing Debian packages {' '.join(missing)} (make debs, as root)"
+        return False, f"missing Debian packages {' '.join(missing)} ({why})"
     return True, "QEMU " + ("KVM" if _kvm_usable() else "TCG (software emulation)")
 
 
@@ -463,7 +523,7 @@ def cmd_pytest(args: argparse.Namespace) -> int:
             return 0
         log("the running kernel has vcan: running the SocketCAN tests here")
         return subprocess.call(pytest_cmd)
-    vm_ok, vm_why = _can_vm()
+    vm_ok, vm_why = _can_vm(install=True)
     if not vm_ok:
         print(f"SKIPPED: SocketCAN tests: no vcan on this kernel ({why}) and no VM: {vm_why}",
               flush=True)

@@ -3,9 +3,11 @@
 ``obu run`` and ``rve run`` start as two processes talking UDP on 127.0.0.1 (ports from
 the OS), the RVE replays one trip at a chosen PER and rate, and ``captures score`` scores
 the shared capture.  The same trip, cell, seed and predictor go through the offline
-CA-TC (:func:`catc.sweep.cam_run`, values through UPER as on the wire).  With zero
-latency the two must agree (the OBU's tick rule is the simulator's); a difference beyond
-what wall-clock scheduling can explain is a bug, and the report shows both.
+CA-TC (:func:`catc.sweep.cam_run`, values through UPER as on the wire, in the live OBU's
+ENU frame).  With zero latency the two must agree (the OBU's tick rule is the
+simulator's): the same ticks and tracks, every estimated position within 1e-6 m (the
+precision ``obu.tracks.jsonl`` keeps is 1e-7 m), and the scores with them.  A difference
+is a bug, and the report shows both.
 """
 
 from __future__ import annotations
@@ -21,7 +23,11 @@ import numpy as np
 
 from catc.mobility import MobilityTable
 from catc.sweep import Cell, cam_run
+from hil.capture import read_capture
 from hil.transport.udp import free_ports, wait_bound
+
+#: How far a live track position may be from the offline one (m): round-off only.
+POSITION_TOL_M = 1e-6
 
 
 class LiveError(RuntimeError):
@@ -82,7 +88,10 @@ def live_checks(spec: str, table: MobilityTable, predictor: str, cells: list[Cel
                               "--burst", f"{cell.burst:g}", "--seed", str(seed), "--speed",
                               f"{speed:g}"], ["--predictor", predictor])
             live = score(cap)
-            off = cam_run(table, predictor, cell, seed, wire=True)
+            captured = read_capture(cap, rx=False)
+            positions: dict[tuple[float, int], tuple[float, float]] = {}
+            off = cam_run(table, predictor, cell, seed, wire=True, positions=positions,
+                          origin=tuple(captured.obu_config["origin"]))
             pte95 = float(np.percentile(off.pte, 95)) if len(off.pte) else None
             total = sum(off.fcw.values())
             acc = (off.fcw["tp"] + off.fcw["tn"]) / total if total else None
@@ -96,7 +105,8 @@ def live_checks(spec: str, table: MobilityTable, predictor: str, cells: list[Cel
                                "fcw_accuracy": None if acc is None else round(acc, 4),
                                "fcw": off.fcw, "sent": off.sent, "dropped": off.dropped,
                                "ticks": off.ticks}}
-            row["agree"] = agreement(row["live"], row["offline"])
+            row["agree"] = agreement(row["live"], row["offline"],
+                                     track_differences(captured.tracks, positions))
             if keep is not None:
                 row["capture"] = str(cap)
             out.append(row)
@@ -106,18 +116,43 @@ def live_checks(spec: str, table: MobilityTable, predictor: str, cells: list[Cel
     return out
 
 
-def agreement(live: dict, offline: dict, pte_tol_m: float = 0.01,
-              fcw_tol: float = 0.005) -> dict:
-    """Differences live − offline and whether they are within tolerance: PTE95 within
-    1 cm, FCW accuracy within 0.5 %, the channel's counts equal."""
+def track_differences(live_tracks: list[dict],
+                      offline: dict[tuple[float, int], tuple[float, float]]) -> dict:
+    """The live OBU's per-tick track positions (``obu.tracks.jsonl`` rows) against the
+    offline ones (``cam_run``'s ``positions``), keyed by tick time (1 ms) and RV: how many
+    (tick, RV) pairs both have, how many only one has, and the largest absolute difference
+    of x or y over the common ones (m; None when there are none)."""
+    live = {(round(r["t"], 3), int(r["id"], 16)): (r["x"], r["y"]) for r in live_tracks}
+    common = live.keys() & offline.keys()
+    diff = max((abs(a - b) for k in common for a, b in zip(live[k], offline[k], strict=True)),
+               default=None)
+    return {"compared": len(common), "live_only": len(live.keys() - common),
+            "offline_only": len(offline.keys() - common),
+            "max_abs_diff_m": None if diff is None else float(diff)}
+
+
+def agreement(live: dict, offline: dict, tracks: dict | None = None,
+              pte_tol_m: float = 1e-4, fcw_tol: float = 1e-4,
+              pos_tol_m: float = POSITION_TOL_M) -> dict:
+    """Differences live − offline and whether they agree: the channel's counts equal,
+    PTE95 within ``pte_tol_m``, FCW accuracy within ``fcw_tol`` (both scores are rounded
+    to 4 decimals: one unit of the last) and, with ``tracks`` (:func:`track_differences`),
+    the same (tick, RV) pairs with every position within ``pos_tol_m``.  The defaults ask
+    for round-off only: a live run at zero latency steps the same frames at the same
+    ticks as the offline one."""
     d_pte = (None if live["pte95_m"] is None or offline["pte95_m"] is None
-             else round(live["pte95_m"] - offline["pte95_m"], 4))
+             else round(live["pte95_m"] - offline["pte95_m"], 7))
     d_fcw = (None if live["fcw_accuracy"] is None or offline["fcw_accuracy"] is None
-             else round(live["fcw_accuracy"] - offline["fcw_accuracy"], 4))
+             else round(live["fcw_accuracy"] - offline["fcw_accuracy"], 7))
     counts = live["sent"] == offline["sent"] and live["dropped"] == offline["dropped"]
     ok = counts and d_pte is not None and abs(d_pte) <= pte_tol_m \
         and (d_fcw is None or abs(d_fcw) <= fcw_tol)
-    return {"pte95_m": d_pte, "fcw_accuracy": d_fcw, "counts_equal": counts, "ok": bool(ok)}
+    out = {"pte95_m": d_pte, "fcw_accuracy": d_fcw, "counts_equal": counts}
+    if tracks is not None:
+        ok = ok and tracks["compared"] > 0 and not tracks["live_only"] \
+            and not tracks["offline_only"] and tracks["max_abs_diff_m"] <= pos_tol_m
+        out["tracks"] = tracks
+    return dict(out, ok=bool(ok))
 
 
 #: The OBU's defences an attack cell runs against: flags of ``obu run``.

@@ -107,11 +107,12 @@ def _host(table: MobilityTable) -> str:
     return table.default_host
 
 
-def _cam(predictor: str, table: MobilityTable):
+def _cam(predictor: str, table: MobilityTable,
+         origin: tuple[float, float, float] | None = None):
     from catc.apps import AppsConfig, SafetyApps
     from catc.cam import CamConfig, ContextAwareMap
 
-    return ContextAwareMap(CamConfig(predictor=predictor, origin=table.origin),
+    return ContextAwareMap(CamConfig(predictor=predictor, origin=origin or table.origin),
                            SafetyApps(AppsConfig(enabled=("fcw",))))
 
 
@@ -205,13 +206,18 @@ def lockstep_errors(tracks: Sequence[tuple[str, Track]], predictor: str, cell: C
 
 def cam_run(table: MobilityTable, predictor: str, cell: Cell, seed: int,
             truth: Sequence[frozenset[int]] | None = None, *, wire: bool = True,
-            pte: bool = True) -> CellResult:
+            pte: bool = True, origin: tuple[float, float, float] | None = None,
+            positions: dict[tuple[float, int], tuple[float, float]] | None = None
+            ) -> CellResult:
     """Run ``table`` through ``cell``'s channel into the CA-TC with ``predictor`` and score
     it as ``captures score`` scores a live capture: PTE of every tracked RV at every tick,
     FCW per tick against ``truth`` (:func:`truth_fcw` of the table, computed when None).
 
     ``wire``: BSM values through UPER encode/decode, as a live OBU receives them.
     ``pte``: False leaves the PTE out (an empty array), for runs scored on the FCW only.
+    ``origin``: the CAM's ENU origin (default the table's); a live OBU's, to compare
+    its estimates with these.  ``positions``: a dict filled with every tick's estimates,
+    ``{(tick time rounded to 1 ms, TemporaryID): (x, y)}``, as ``obu.tracks.jsonl`` has them.
     """
     from catc.replay import plan, simulate, temp_id
 
@@ -224,7 +230,7 @@ def cam_run(table: MobilityTable, predictor: str, cell: Cell, seed: int,
     sent = int((rv & ~ev["dropped"]).sum())
     dropped = int((rv & ev["dropped"]).sum())
     host_t = table.tracks[host_id].t
-    cam = _cam(predictor, table)
+    cam = _cam(predictor, table, origin)
     # truth in the CAM's frame, as `captures score` moves it (positions from lat/lon)
     truth_tracks = {}
     for v in the_plan.vehicles[1:]:
@@ -237,6 +243,9 @@ def cam_run(table: MobilityTable, predictor: str, cell: Cell, seed: int,
     k = -1
     for k, snap in enumerate(simulate(the_plan, cam, wire=wire)):
         t = float(host_t[k])  # the tick's dataset time (the snapshot's is on the secMark clock)
+        if positions is not None:
+            for i, tid in enumerate(snap.ids.tolist()):
+                positions[(round(snap.t, 3), tid)] = (float(snap.x[i]), float(snap.y[i]))
         if pte and len(snap):
             keep, ex, ey = [], [], []
             for i, tid in enumerate(snap.ids.tolist()):

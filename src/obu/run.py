@@ -85,6 +85,12 @@ async def _open_receiver(args: argparse.Namespace) -> Receiver:
                                fd=bool(args.can_fd))
 
 
+def _where(args: argparse.Namespace) -> str:
+    if args.transport == "udp":
+        return "udp " + ", ".join(f"{h}:{p}" for h, p in (args.listen, args.host_listen))
+    return f"can {args.can_interface} {args.can_channel}"
+
+
 async def serve(args: argparse.Namespace) -> dict:
     """Receive and step until stopped; returns the final counters."""
     obu = Obu(args)
@@ -122,6 +128,9 @@ async def serve(args: argparse.Namespace) -> dict:
         shown = f"[{host_}]" if ":" in host_ else host_
         print(f"obu: live view at http://{shown}:{port_}/", file=sys.stderr, flush=True)
     obu.gc = GcPolicy()  # start-up done: freeze it; collections after ticks only
+    # receiving from here on (frames already wait in the sockets' or the bus's queue):
+    # what a launcher waits for before it sends, whatever the transport or namespace
+    print(f"obu: ready ({_where(args)})", file=sys.stderr, flush=True)
     started = time.monotonic()
     last_status, frames_at_status = started, 0
     done = "stopped"  # why the loop ended, when no signal did

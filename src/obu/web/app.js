@@ -40,7 +40,7 @@ function view() {
   const W = canvas.width, H = canvas.height;
   const ox = W / 2 + pan.x * devicePixelRatio, oy = H * 0.62 + pan.y * devicePixelRatio;
   return {
-    a, k,
+    a, k, ox, oy, hx: h.x, hy: h.y,
     p(x, y) {
       const dx = x - h.x, dy = y - h.y;
       return [ox + k * (dx * c - dy * s), oy - k * (dx * s + dy * c)];
@@ -259,6 +259,9 @@ async function replay() {
   };
   go(0);
 }
+
+// for tests: the transform's parameters (the pixels are checked against them)
+window.liveView = { view };
 
 resize();
 if (MODE === "replay") replay(); else live();

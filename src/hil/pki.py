@@ -11,12 +11,27 @@ the ``foreign-cert`` attack.
 A trust store is what an OBU is given: a PKI directory (its root is trusted and its AA
 known in advance, as an SCMS hands a device its local certificate chain) or a root
 certificate file (``.oer``; then every CA certificate must come in the messages).
+
+Files are made, never overwritten: ``rve pki init`` creates DIR (or takes an existing
+directory that is not a symbolic link and not group- or world-writable) and writes each
+file with ``O_CREAT | O_EXCL | O_NOFOLLOW`` through a descriptor of DIR, so a file or a
+symbolic link planted in DIR beforehand is a one-line error, not a file written through;
+what the failed run had made is removed again.  Private keys are created mode 0600,
+certificates and pki.json 0644 (less if the umask says so).
+
+``--seed`` derives every private key from the seed string, so the seed is as secret as
+the keys: it is written nowhere (pki.json says only ``"seeded": true``).  Whoever wants
+the same PKI again runs ``rve pki init`` with the same seed; the tests keep theirs in
+their code.
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import json
 import os
+import stat
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,41 +61,140 @@ class LoadedPki:
     foreign: tuple[tuple[bytes, object], ...] = ()  # the untrusted PKI's pseudonyms
 
 
-def _write(path: Path, data: bytes, private: bool = False) -> None:
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600 if private else 0o644)
-    with os.fdopen(fd, "wb") as f:
-        f.write(data)
+#: How every file of a new PKI is opened: made here or refused, never followed.
+_NEW_FILE = (os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0)
+             | getattr(os, "O_CLOEXEC", 0))
+_DIR = os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) | getattr(os, "O_NOFOLLOW", 0)
+
+
+def _taken(path: Path, is_link: bool) -> PkiError:
+    if is_link:
+        return PkiError(f"{path} is a symbolic link: rve pki init writes no file through "
+                        "one (remove it or choose a new directory)")
+    return PkiError(f"{path} already exists: rve pki init writes only new files (choose a "
+                    "new or empty directory)")
+
+
+def _lstat(name: str, dir_fd: int | None) -> os.stat_result | None:
+    try:
+        return os.stat(name, dir_fd=dir_fd, follow_symlinks=False)
+    except OSError:
+        return None
+
+
+def _is_link(name: str, dir_fd: int | None) -> bool:
+    st = _lstat(name, dir_fd)
+    return st is not None and stat.S_ISLNK(st.st_mode)
+
+
+def _writable_by_others(mode: int) -> str | None:
+    """'group', 'world' or 'group and world' when ``mode`` lets them write, else None."""
+    who = [w for w, bit in (("group", stat.S_IWGRP), ("world", stat.S_IWOTH)) if mode & bit]
+    return " and ".join(who) or None
+
+
+class _NewFiles:
+    """The directories and files one ``init`` makes, opened by descriptor (module
+    docstring), and removed again if it fails."""
+
+    def __init__(self) -> None:
+        self.made: list[tuple[int | None, str, bool]] = []  # (dir fd, name, is a directory)
+        self.fds: list[int] = []
+
+    def directory(self, path: Path, name: str, parent: int | None) -> int:
+        """Make directory ``name`` (in ``parent``'s descriptor, or a path when None) unless
+        it exists, and open it without following a link; its descriptor."""
+        try:
+            os.mkdir(name, 0o755, dir_fd=parent)
+            self.made.append((parent, name, True))
+        except FileExistsError:
+            if parent is not None:  # foreign/ is always new
+                raise _taken(path, _is_link(name, parent)) from None
+        try:
+            fd = os.open(name, _DIR, dir_fd=parent)
+        except OSError as err:
+            if err.errno == errno.ELOOP or _is_link(name, parent):
+                raise PkiError(f"{path} is a symbolic link: name the directory itself") \
+                    from None
+            if err.errno == errno.ENOTDIR:
+                raise PkiError(f"{path} is not a directory") from None
+            raise
+        self.fds.append(fd)
+        mode = os.fstat(fd).st_mode
+        who = _writable_by_others(mode)
+        if who:
+            raise PkiError(f"{path} is {who}-writable (mode {stat.S_IMODE(mode):04o}): an OBU "
+                           f"would refuse it as a trust store (chmod go-w {path})")
+        return fd
+
+    def write(self, dir_fd: int, path: Path, data: bytes, private: bool = False) -> None:
+        """A new file ``path.name`` in ``dir_fd`` (``path`` names it in messages)."""
+        try:
+            fd = os.open(path.name, _NEW_FILE, 0o600 if private else 0o644, dir_fd=dir_fd)
+        except OSError as err:
+            if err.errno in (errno.EEXIST, errno.ELOOP):
+                raise _taken(path, _is_link(path.name, dir_fd)) from None
+            raise
+        self.made.append((dir_fd, path.name, False))
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+
+    def undo(self) -> None:
+        for dir_fd, name, is_dir in reversed(self.made):
+            with contextlib.suppress(OSError):
+                (os.rmdir if is_dir else os.unlink)(name, dir_fd=dir_fd)
+
+    def close(self) -> None:
+        for fd in self.fds:
+            os.close(fd)
 
 
 def init(directory: str | os.PathLike, pseudonyms: int, days: float, *,
          seed: str | None = None, foreign: bool = True, start_unix: float | None = None) -> dict:
-    """Create a test PKI in ``directory`` (module docstring); returns pki.json's content."""
-    from catc.security import make_pki, unix_to_time32
-
+    """Create a test PKI in ``directory`` (module docstring); returns pki.json's content.
+    :class:`PkiError` for bad arguments and for a directory or file that is in the way."""
     if pseudonyms < 1:
         raise PkiError(f"--vehicles must be at least 1, got {pseudonyms}")
     if not days > 0:
         raise PkiError(f"--days must be > 0, got {days}")
     d = Path(directory)
-    if (d / "pki.json").exists():
-        raise PkiError(f"{d} already holds a PKI (pki.json); choose another directory")
-    d.mkdir(parents=True, exist_ok=True)
+    files = _NewFiles()
+    try:
+        d.parent.mkdir(parents=True, exist_ok=True)
+        fd = files.directory(d, str(d), None)
+        if _is_link("pki.json", fd):
+            raise _taken(d / "pki.json", True)
+        if _lstat("pki.json", fd) is not None:
+            raise PkiError(f"{d} already holds a PKI (pki.json); choose another directory")
+        return _make(files, fd, d, pseudonyms, days, seed, foreign, start_unix)
+    except BaseException:
+        files.undo()
+        raise
+    finally:
+        files.close()
+
+
+def _make(files: _NewFiles, fd: int, d: Path, pseudonyms: int, days: float,
+          seed: str | None, foreign: bool, start_unix: float | None) -> dict:
+    from catc.security import make_pki, unix_to_time32
+
     start = unix_to_time32((time.time() if start_unix is None else start_unix) - 3600)
     duration = int(days * 86400)
     pki = make_pki(pseudonyms, start_time32=start, duration_s=duration, seed=seed)
     manifest = {"format": FORMAT, "made_by": "rve pki init", "created_unix": time.time(),
-                "seed": seed, "start_time32": start, "duration_s": duration,
+                "seeded": seed is not None, "start_time32": start, "duration_s": duration,
                 "certificates": {}}
     for label, ident in pki.identities().items():
-        _write(d / f"{label}.oer", ident.raw)
-        _write(d / f"{label}.key.pem", ident.private_pem(), private=True)
+        files.write(fd, d / f"{label}.oer", ident.raw)
+        files.write(fd, d / f"{label}.key.pem", ident.private_pem(), private=True)
         manifest["certificates"][label] = ident.hashed_id8.hex()
     manifest["pseudonyms"] = [p.label for p in pki.pseudonyms]
     if foreign:
-        manifest["foreign"] = init(d / "foreign", 1, days, seed=None if seed is None
-                                   else f"{seed}/foreign", foreign=False,
-                                   start_unix=start_unix)
-    (d / "pki.json").write_text(json.dumps(manifest, indent=1))
+        sub = files.directory(d / "foreign", "foreign", fd)
+        manifest["foreign"] = _make(files, sub, d / "foreign", 1, days,
+                                    None if seed is None else f"{seed}/foreign", False,
+                                    start_unix)
+    files.write(fd, d / "pki.json", json.dumps(manifest, indent=1).encode())  # the last
     return manifest
 
 

@@ -38,7 +38,10 @@ CA, an authorization CA (AA) signed by it, and one pseudonym certificate per rem
 vehicle signed by the AA (explicit certificates, ECDSA NIST P-256, psid 0x20 in
 appPermissions, valid from an hour ago for --days), each as LABEL.oer (COER) with its
 private key LABEL.key.pem (PKCS#8, mode 0600), and pki.json listing them with their
-HashedId8s.  DIR/foreign is a second PKI that nobody trusts (for attacks).
+HashedId8s.  DIR/foreign is a second PKI that nobody trusts (for attacks).  Every file is
+new: a file or a symbolic link already in DIR's way is an error, and so is a DIR that is a
+symbolic link or group- or world-writable.  A --seed is written nowhere (every key
+derives from it): give it again to make the same PKI again.
 
   rve run --sign DIR ...        signs every RV's BSM with these pseudonyms
   obu run --verify enforce --trust DIR ...   trusts DIR's root and knows its AA"""
@@ -139,7 +142,8 @@ def main(argv: list[str] | None = None) -> int:
     ki.add_argument("--days", type=float, default=30.0,
                     help="validity period of every certificate in days (default 30)")
     ki.add_argument("--seed", help="derive the keys from this string (reproducible PKI; "
-                                   "for tests only)")
+                                   "for tests only: whoever knows it has every key; it is "
+                                   "not stored)")
     ki.set_defaults(func=_pki_init)
     return dispatch(parser, argv)
 

@@ -1,6 +1,7 @@
-"""The files of a test PKI (``rve pki init``, :mod:`hil.pki`), with real files, modes
-and symbolic links: keys 0600, the seed written nowhere, nothing written through a
-planted link or over a planted file.  Modes are read back with ``os.stat``
+"""The files of a test PKI (``rve pki init``, :mod:`hil.pki`) and the trust store the OBU
+takes (``obu run --trust``), with real files, modes and symbolic links: keys 0600, the
+seed written nowhere, nothing written through a planted link or over a planted file, and
+a trust store that others could write refused.  Modes are read back with ``os.stat``
 (the tests run as root, who reads and writes whatever the bits say)."""
 
 from __future__ import annotations
@@ -14,7 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from hil.pki import init
+from hil.pki import PkiError, init, trust_store
+from hil.transport.udp import free_ports
 
 PY = sys.executable
 SEED = "the-seed-is-a-secret-1f3a"
@@ -121,3 +123,52 @@ def test_the_pki_directory_must_be_a_directory_others_cannot_write(tmp_path):
     empty = tmp_path / "empty"  # an existing empty directory of one's own is fine
     empty.mkdir(mode=0o700)
     assert _rve_pki_init(empty).returncode == 0 and (empty / "pki.json").is_file()
+
+
+@pytest.fixture(scope="module")
+def made_pki(tmp_path_factory) -> Path:
+    d = tmp_path_factory.mktemp("trust") / "pki"
+    init(d, 1, 1.0, seed="trust", foreign=False)
+    return d
+
+
+def test_a_trust_store_others_can_write_is_refused(made_pki, tmp_path):
+    roots, cas = trust_store(made_pki)
+    assert roots == [(made_pki / "root.oer").read_bytes()] and cas
+    for part, mode in ((made_pki, 0o777), (made_pki, 0o775), (made_pki / "root.oer", 0o666),
+                       (made_pki / "aa.oer", 0o646), (made_pki / "pki.json", 0o664)):
+        before = _mode(part)
+        os.chmod(part, mode)
+        try:
+            with pytest.raises(PkiError, match=r"writable \(mode 0\d{3}\).*chmod go-w"):
+                trust_store(made_pki)
+        finally:
+            os.chmod(part, before)
+    # a root certificate file: the file and the directory that holds it
+    holder = tmp_path / "holder"
+    holder.mkdir(mode=0o755)
+    root = holder / "root.oer"
+    root.write_bytes((made_pki / "root.oer").read_bytes())
+    os.chmod(root, 0o644)
+    assert trust_store(root) == ([root.read_bytes()], [])
+    os.chmod(root, 0o666)
+    with pytest.raises(PkiError, match=r"root\.oer is group and world-writable"):
+        trust_store(root)
+    os.chmod(root, 0o644)
+    os.chmod(holder, 0o1777)  # sticky or not, others can put a file in it beforehand
+    with pytest.raises(PkiError, match=r"holder is group and world-writable \(mode 1777\)"):
+        trust_store(root)
+
+
+def test_obu_run_refuses_a_world_writable_trust_directory_in_one_line(made_pki):
+    before = _mode(made_pki)
+    os.chmod(made_pki, 0o777)
+    try:
+        rv, host = free_ports()
+        out = subprocess.run([PY, "-m", "obu.cli", "run", "--verify", "enforce", "--trust",
+                              str(made_pki), "--listen", f"127.0.0.1:{rv}", "--host-listen",
+                              f"127.0.0.1:{host}", "--duration", "1"],
+                             capture_output=True, text=True, timeout=60)
+    finally:
+        os.chmod(made_pki, before)
+    _one_line_error(out, str(made_pki), "world-writable", "chmod go-w")

@@ -23,6 +23,11 @@ certificates and pki.json 0644 (less if the umask says so).
 the keys: it is written nowhere (pki.json says only ``"seeded": true``).  Whoever wants
 the same PKI again runs ``rve pki init`` with the same seed; the tests keep theirs in
 their code.
+
+A trust store that others could change is refused (:func:`trust_store`): the PKI
+directory, its pki.json, root.oer and aa.oer, or a root ``.oer`` file and the directory
+that holds it, must not be group- or world-writable (whoever can write them can make the
+OBU trust their own root).  There is no flag to accept one: ``chmod go-w`` it.
 """
 
 from __future__ import annotations
@@ -250,12 +255,29 @@ def load(directory: str | os.PathLike) -> LoadedPki:
                      tuple(pseudonyms), foreign)
 
 
+def _not_writable_by_others(path: Path) -> None:
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return  # reading it says what is wrong
+    who = _writable_by_others(mode)
+    if who:
+        raise PkiError(f"trust store {path} is {who}-writable (mode {stat.S_IMODE(mode):04o}): "
+                       f"anyone could make it trust their own root (chmod go-w {path})")
+
+
 def trust_store(path: str | os.PathLike) -> tuple[list[bytes], list[bytes]]:
-    """(trusted roots, known CA certificates) of a PKI directory or a root ``.oer`` file."""
+    """(trusted roots, known CA certificates) of a PKI directory or a root ``.oer`` file;
+    :class:`PkiError` for one that is unusable or that others could write (module
+    docstring)."""
     p = Path(path)
     if p.is_dir():
+        for part in (p, p / "pki.json", p / "root.oer", p / "aa.oer"):
+            _not_writable_by_others(part)
         _manifest(p)
         return [_certificate(p / "root.oer")], [_certificate(p / "aa.oer")]
     if not p.exists():
         raise PkiError(f"{p}: no such trust store (a PKI directory or a root .oer file)")
+    for part in (p.parent, p):
+        _not_writable_by_others(part)
     return [_certificate(p)], []

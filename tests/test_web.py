@@ -1,7 +1,9 @@
 """The live view (obu.web) in a real browser: Debian's headless Chromium driven by
 Playwright (``make debs`` installs chromium; no browser download), against a live
 ``obu run --web`` fed by ``rve run`` on the default scenario, and ``captures view`` over
-the capture.  Screenshots go to ``out/test-artifacts/``."""
+the capture.  Screenshots go to ``out/test-artifacts/``.  The page's Content-Security-Policy
+forbids ``eval``: ``wait_for_function`` gets functions (``"() => ..."``), not expressions,
+which Playwright would ``eval`` in the page."""
 
 from __future__ import annotations
 
@@ -60,31 +62,47 @@ def _wait_http(url: str, seconds: float = 10.0) -> None:
 
 
 @contextlib.contextmanager
-def _serve_replay(ticks: list[dict], tracks: list[dict]):
-    """The page in replay mode over hand-made ticks and tracks (``obu.web.Replay``), served
-    from a thread of this process: its base URL."""
-    from obu.web import Replay, make_app, start
+def _serve(make, host: str = "127.0.0.1", background=()):
+    """The application ``make()`` returns (called on the server's loop), served on ``host``
+    from a thread of this process with the coroutine functions ``background`` running
+    beside it on the same loop: its port."""
+    from obu.web import start
 
     port, ready = _port(), threading.Event()
     loop = asyncio.new_event_loop()
 
     def main() -> None:
         asyncio.set_event_loop(loop)
-        runner = loop.run_until_complete(start(
-            make_app(replay=Replay(ticks, tracks, [], None, {})), "127.0.0.1", port))
+        runner = loop.run_until_complete(start(make(), host, port))
+        tasks = [loop.create_task(b()) for b in background]
         ready.set()
         loop.run_forever()
+        for task in tasks:
+            task.cancel()
+        loop.run_until_complete(asyncio.gather(*tasks, return_exceptions=True))
         loop.run_until_complete(runner.cleanup())
         loop.close()
 
     thread = threading.Thread(target=main, daemon=True)
     thread.start()
-    assert ready.wait(10), "the replay server did not start"
+    assert ready.wait(10), "the server did not start"
     try:
-        yield f"http://127.0.0.1:{port}"
+        yield port
     finally:
         loop.call_soon_threadsafe(loop.stop)
-        thread.join(10)
+        thread.join(70)
+
+
+@contextlib.contextmanager
+def _serve_replay(ticks: list[dict], tracks: list[dict], events: list[dict] = (),
+                  counters: dict | None = None):
+    """The page in replay mode over hand-made ticks and tracks (``obu.web.Replay``), served
+    from a thread of this process: its base URL."""
+    from obu.web import Replay, make_app
+
+    with _serve(lambda: make_app(replay=Replay(ticks, tracks, list(events), None,
+                                                counters or {}))) as port:
+        yield f"http://127.0.0.1:{port}"
 
 
 @pytest.fixture(scope="module")
@@ -124,7 +142,7 @@ def test_live_view_in_chromium(browser, tmp_path):
                             "2", "--duration", "26", "--capture", str(tmp_path)],
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        page.wait_for_function("+document.getElementById('map').dataset.rvs > 0",
+        page.wait_for_function("() => +document.getElementById('map').dataset.rvs > 0",
                                timeout=20_000)
         drawn, listed, _ = _same_tick_counts(page, base + "/api/state")
         assert drawn == listed > 0
@@ -148,7 +166,7 @@ def test_live_view_in_chromium(browser, tmp_path):
         assert _get(base + "/api/state?tick=x")[0] == 400
         other = browser.new_page()
         other.goto(base + "/")
-        other.wait_for_function("+document.getElementById('map').dataset.rvs > 0")
+        other.wait_for_function("() => +document.getElementById('map').dataset.rvs > 0")
         other.close()
         assert obu.poll() is None
     finally:
@@ -185,22 +203,22 @@ def test_captures_view_in_chromium(browser, tmp_path):
         # the slider to tick 150: the page draws what /api/state?tick=150 lists
         page.eval_on_selector("#slider", "s => { s.value = 150; s.dispatchEvent("
                                          "new Event('input')); }")
-        page.wait_for_function("document.getElementById('tickno').textContent"
+        page.wait_for_function("() => document.getElementById('tickno').textContent"
                                ".startsWith('tick 150 ')")
         s = json.loads(_get(base + "/api/state?tick=150")[1])
-        page.wait_for_function(f"+document.getElementById('map').dataset.t == {s['t']}")
+        page.wait_for_function(f"() => +document.getElementById('map').dataset.t == {s['t']}")
         assert int(page.get_attribute("#map", "data-rvs")) == len(s["rvs"]) > 0
         assert s["truth"]  # the RVE's ground truth, joined
         # a warning in the list jumps to its moment
         first = index["events"][0]
         page.click("#warnlist li >> nth=0")
         page.wait_for_function(
-            f"Math.abs(+document.getElementById('map').dataset.t - {first['t']}) < 0.11")
+            f"() => Math.abs(+document.getElementById('map').dataset.t - {first['t']}) < 0.11")
         ARTIFACTS.mkdir(parents=True, exist_ok=True)
         page.screenshot(path=str(ARTIFACTS / "captures-view.png"))
         page.click("#play")
         t0 = float(page.get_attribute("#map", "data-t"))
-        page.wait_for_function(f"+document.getElementById('map').dataset.t > {t0}")
+        page.wait_for_function(f"() => +document.getElementById('map').dataset.t > {t0}")
         # bad input
         assert _get(base + "/api/state?tick=999999")[0] == 400
         assert _get(base + "/api/state?tick=abc")[0] == 400
@@ -268,7 +286,7 @@ def test_live_view_draws_each_rv_at_its_pixel(browser):
         page = browser.new_page(viewport={"width": 1280, "height": 800})
         try:
             page.goto(base + "/")
-            page.wait_for_function("document.getElementById('map').dataset.t == '12.3'")
+            page.wait_for_function("() => document.getElementById('map').dataset.t == '12.3'")
             assert page.get_attribute("#map", "data-rvs") == str(len(_RVS))
             for north_up in (False, True):
                 if north_up:
@@ -293,3 +311,40 @@ def test_live_view_draws_each_rv_at_its_pixel(browser):
                     assert not any(near(p) for p in there), (rid, zone, north_up, there)
         finally:
             page.close()
+
+
+# --- a capture's strings are text, not HTML ------------------------------------------------
+
+#: Strings a crafted capture could hold: each sets window.__pwned if the page runs it.
+_XSS = ['<img src=x onerror="window.__pwned=1">', "<script>window.__pwned=2</script>",
+        '<svg onload="window.__pwned=3"></svg>']
+
+
+def test_a_capture_s_strings_are_shown_as_text_not_run(browser):
+    """``captures view`` of a capture whose fields hold HTML: the page shows the text as it
+    is and runs none of it."""
+    ticks = [{"t": 12.3, "sec_mark": 12300, "host": [0.0, 0.0], "host_heading": 0.0,
+              "host_speed": 10.0, "warnings": [["fcw", _XSS[1], 20.0, None]],
+              "tracked": _XSS[0], "step_ms": _XSS[1]}]
+    events = [{"kind": "start", "app": _XSS[2], "rv": _XSS[0], "t": 12.3}]
+    with _serve_replay(ticks, [], events, {"decode_errors": _XSS[2],
+                                           "verify_rejected": _XSS[0]}) as base:
+        page = browser.new_page()
+        try:
+            page.goto(base + "/")
+            page.wait_for_function("() => document.getElementById('map').dataset.t == '12.3'")
+            page.wait_for_load_state("networkidle")  # an <img src=x> would have failed
+            time.sleep(0.3)
+            assert page.evaluate("window.__pwned") is None
+            assert page.query_selector_all("#panel img, #panel script, #panel svg, "
+                                           "#warnlist img, #warnlist svg") == []
+            panel = page.inner_text("#panel")
+            for text in _XSS:
+                assert text in panel, (text, panel)
+            assert _XSS[1] in page.inner_text("#banner")
+        finally:
+            page.close()
+        with urllib.request.urlopen(base + "/", timeout=5) as r:
+            csp = r.headers["Content-Security-Policy"]
+        assert "script-src 'self'" in csp and "unsafe-inline" not in csp.partition(
+            "style-src")[0]  # no inline script: a defence beside the text

@@ -16,6 +16,11 @@ and WebSocket server, so the page shares the loop instead of a thread or a proce
 
 Unknown paths give 404, a malformed query 400.
 
+The page's responses carry a Content-Security-Policy (scripts from this server only, no
+inline script) and ``nosniff``; the page writes every string of a state or a capture as
+text (``textContent``), never as HTML (issue 28: a crafted capture ran script in
+``captures view``).
+
 The state of a tick (:func:`tick_state`): ``t``, the host (x, y, heading, speed, path
 radius, predicted pose), every tracked RV (id, x, y, heading, speed, zone now and
 predicted, fresh or predicted with the age of its last BSM, predicted position), the
@@ -40,6 +45,13 @@ if TYPE_CHECKING:
 
 STATIC = {"index.html": "text/html", "app.js": "application/javascript",
           "style.css": "text/css"}
+#: Headers of every page response (module docstring).
+PAGE_HEADERS = {
+    "Content-Security-Policy": "default-src 'self'; script-src 'self'; style-src 'self' "
+                               "'unsafe-inline'; img-src 'self' data:; object-src 'none'; "
+                               "base-uri 'none'; frame-ancestors 'none'",
+    "X-Content-Type-Options": "nosniff",
+}
 
 
 def tick_state(snap: MapSnapshot, host_sec_mark: int, panel: dict,
@@ -116,7 +128,7 @@ def make_app(hub: Hub | None = None, replay: Replay | None = None) -> web.Applic
             text = pkg.joinpath(name).read_text(encoding="utf-8")
             if name == "index.html":
                 text = text.replace("__MODE__", "replay" if replay else "live")
-            return web.Response(text=text, content_type=STATIC[name])
+            return web.Response(text=text, content_type=STATIC[name], headers=PAGE_HEADERS)
         return handler
 
     async def state(request: web.Request) -> web.Response:

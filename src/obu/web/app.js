@@ -169,8 +169,16 @@ function panel() {
     ["deadline misses", p.deadline_misses ?? 0],
     ["views pushed/s", fps.toFixed(0)],
   ];
-  document.getElementById("panel").innerHTML =
-    rows.map(([k, val]) => `<tr><td>${k}</td><td>${val}</td></tr>`).join("");
+  // as text: a capture's strings (captures view) are data, never HTML
+  document.getElementById("panel").replaceChildren(...rows.map(([k, val]) => {
+    const tr = document.createElement("tr");
+    for (const cell of [k, val]) {
+      const td = document.createElement("td");
+      td.textContent = String(cell);
+      tr.appendChild(td);
+    }
+    return tr;
+  }));
   const b = document.getElementById("banner");
   if (state.warnings.length) {
     b.textContent = state.warnings.map(([app, id, range, thr]) =>

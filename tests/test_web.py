@@ -11,6 +11,7 @@ import asyncio
 import contextlib
 import json
 import math
+import socket
 import subprocess
 import sys
 import threading
@@ -108,7 +109,10 @@ def _serve_replay(ticks: list[dict], tracks: list[dict], events: list[dict] = ()
 @pytest.fixture(scope="module")
 def browser():
     with sync_api.sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"])
+        # rebind.test: a name that resolves to this machine, as an attacker's would once
+        # rebound (DNS rebinding)
+        b = p.chromium.launch(executable_path=CHROMIUM, args=[
+            "--no-sandbox", "--host-resolver-rules=MAP rebind.test 127.0.0.1"])
         yield b
         b.close()
 
@@ -313,7 +317,7 @@ def test_live_view_draws_each_rv_at_its_pixel(browser):
             page.close()
 
 
-# --- a capture's strings are text, not HTML ------------------------------------------------
+# --- who may look: text not HTML, Host, Origin ------------------------------------------------
 
 #: Strings a crafted capture could hold: each sets window.__pwned if the page runs it.
 _XSS = ['<img src=x onerror="window.__pwned=1">', "<script>window.__pwned=2</script>",
@@ -348,3 +352,139 @@ def test_a_capture_s_strings_are_shown_as_text_not_run(browser):
             csp = r.headers["Content-Security-Policy"]
         assert "script-src 'self'" in csp and "unsafe-inline" not in csp.partition(
             "style-src")[0]  # no inline script: a defence beside the text
+
+
+def _request(port: int, path: str, host: str | None = "127.0.0.1:{port}",
+             headers: str = "", method_line: str = "") -> tuple[int, socket.socket, bytes]:
+    """A request by hand (any Host header, or none): its status, the socket and the head
+    of the answer; the answer's body is left unread."""
+    s = socket.create_connection(("127.0.0.1", port), timeout=10)
+    head = method_line or f"GET {path} HTTP/1.1\r\n"
+    if host is not None:
+        head += f"Host: {host.format(port=port)}\r\n"
+    s.sendall((head + headers + "\r\n").encode())
+    got = b""
+    while b"\r\n\r\n" not in got:
+        chunk = s.recv(1)  # a byte at a time: what follows the head stays unread
+        if not chunk:
+            break
+        got += chunk
+    return (int(got.split(b" ", 2)[1]) if got else 0), s, got
+
+
+def _status(port: int, path: str = "/", **kw) -> int:
+    status, s, _ = _request(port, path, **kw)
+    s.close()
+    return status
+
+
+_UPGRADE = ("Upgrade: websocket\r\nConnection: Upgrade\r\nSec-WebSocket-Version: 13\r\n"
+            "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n")
+
+
+def _ws(port: int, origin: str | None = None, host: str | None = "127.0.0.1:{port}"):
+    """A WebSocket handshake by hand: (status, socket)."""
+    extra = _UPGRADE + (f"Origin: {origin.format(port=port)}\r\n" if origin else "")
+    status, s, _ = _request(port, "/ws", host=host, headers=extra)
+    return status, s
+
+
+def _live(**kw):
+    from obu.web import Hub, make_app
+
+    hub = Hub()
+    return hub, (lambda: make_app(hub, **kw))
+
+
+def test_only_requests_that_name_this_server_are_answered(browser):
+    """DNS rebinding: a page of a name that resolves here (rebind.test) is refused (421),
+    page and WebSocket; the loopback names and the port are answered."""
+    _, make = _live()
+    with _serve(make) as port:
+        for host in ("127.0.0.1:{port}", "localhost:{port}", "[::1]:{port}",
+                     "LOCALHOST.:{port}", "[0:0:0:0:0:0:0:1]:{port}"):
+            assert _status(port, host=host) == 200, host
+            assert _status(port, "/api/state", host=host) == 200, host
+        for host in ("rebind.test:{port}", "127.0.0.1", "127.0.0.1:1", "localhost:{port}0",
+                     "10.0.0.1:{port}", "127.0.0.1:{port}/x", "user@127.0.0.1:{port}", "",
+                     "127.0.0.1:{port}.rebind.test"):
+            assert _status(port, host=host) == 421, host
+            assert _status(port, "/api/state", host=host) == 421, host
+        assert _status(port, host=None, method_line="GET / HTTP/1.0\r\n") == 421
+        assert _ws(port, host="rebind.test:{port}")[0] == 421
+        page = browser.new_page()
+        try:
+            answer = page.goto(f"http://rebind.test:{port}/")
+            assert answer.status == 421
+            assert page.evaluate("fetch('/api/state').then(r => r.status)") == 421
+            answer = page.goto(f"http://localhost:{port}/")
+            assert answer.status == 200
+        finally:
+            page.close()
+    _, make = _live()
+    with _serve(make, host="0.0.0.0") as port:  # all interfaces: any address, no other name
+        me = socket.gethostname()
+        for host in ("127.0.0.1:{port}", "10.1.2.3:{port}", "localhost:{port}",
+                     f"{me}:{{port}}"):
+            assert _status(port, host=host) == 200, host
+        assert _status(port, host="rebind.test:{port}") == 421
+
+
+@contextlib.contextmanager
+def _attacker_site():
+    """Another site's page, served on another loopback port: its URL."""
+    from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+    class Page(BaseHTTPRequestHandler):
+        def do_GET(self) -> None:
+            body = b"<!doctype html><title>another site</title>"
+            self.send_response(200)
+            self.send_header("Content-Type", "text/html")
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, *_args) -> None:
+            pass
+
+    server = ThreadingHTTPServer(("127.0.0.1", 0), Page)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield f"http://127.0.0.1:{server.server_address[1]}/"
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def test_websockets_from_another_origin_are_refused(browser):
+    """A page of another origin (here: another port) cannot open the live view's
+    WebSocket (403); the page's own origin, its loopback names and a program that sends
+    no Origin can."""
+    hub, make = _live()
+    with _serve(make) as port, _serve_replay([], []) as other:
+        for origin in (None, "http://127.0.0.1:{port}", "http://localhost:{port}",
+                       "http://[::1]:{port}"):
+            status, s = _ws(port, origin)
+            s.close()
+            assert status == 101, origin
+        for origin in ("http://rebind.test:{port}", "http://127.0.0.1:1", "null",
+                       "https://127.0.0.1:{port}", other, "http://127.0.0.1:{port}.evil",
+                       "file://", "http://127.0.0.1:{port}/path"):
+            status, s = _ws(port, origin)
+            s.close()
+            assert status == 403, origin
+        page = browser.new_page()
+        js = (f"() => new Promise(done => {{ const w = new WebSocket("
+              f"'ws://127.0.0.1:{port}/ws'); w.onopen = () => done('open'); "
+              "w.onclose = () => done('closed'); setTimeout(() => done('hung'), 5000); })")
+        try:  # another site's page on this machine (Chromium itself blocks a public
+            # site from loopback, not one on the same machine or network)
+            with _attacker_site() as site:
+                page.goto(site)
+                assert page.evaluate(js) == "closed"
+            page.goto(f"http://127.0.0.1:{port}/")
+            assert page.evaluate(js) == "open"
+        finally:
+            page.close()
+        assert hub.counters["refused_origin"] >= 9

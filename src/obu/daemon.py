@@ -149,10 +149,14 @@ class Obu:
         self.cap.tick(snap, host.sec_mark, ms, decided, received)
 
     def all_counters(self, transport_stats: dict[str, int]) -> dict[str, Any]:
-        """Every counter (:meth:`obu.status.Status.all_counters`)."""
-        return self.status.all_counters(
+        """Every counter (:meth:`obu.status.Status.all_counters`), and the live view's
+        (``web_``: what it refused and cut off, :mod:`obu.web`) when it is on."""
+        out = self.status.all_counters(
             len(self.frames.pending), self.cam.tentative, self.cam.counters,
             transport_stats, None if self.gc is None else self.gc.counters())
+        if self.web is not None:
+            out.update({f"web_{k}": v for k, v in self.web.counters.items()})
+        return out
 
     def close(self, exit: str = "clean", reason: str = "",
               counters: dict[str, Any] | None = None) -> None:

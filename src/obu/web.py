@@ -16,10 +16,25 @@ and WebSocket server, so the page shares the loop instead of a thread or a proce
 
 Unknown paths give 404, a malformed query 400.
 
-The page's responses carry a Content-Security-Policy (scripts from this server only, no
-inline script) and ``nosniff``; the page writes every string of a state or a capture as
-text (``textContent``), never as HTML (issue 28: a crafted capture ran script in
-``captures view``).
+Who may look (issue 28):
+
+* **Host** (DNS rebinding): every request, page or WebSocket, must name this server in
+  its ``Host`` header, else 421: the host it was started on (an address or a name) with
+  the port it listens on; for a loopback address also ``localhost``, ``127.0.0.1`` and
+  ``[::1]``; for all interfaces (``0.0.0.0``, ``::``) any IP address, ``localhost`` and the
+  machine's host name.  A page of another site whose name an attacker points at this
+  address sends that name, and is refused.  To be reached by another name, serve on that
+  name (``--web NAME:PORT``).  A request without ``Host`` is refused too.
+* **Origin**: a WebSocket whose ``Origin`` is not this server's own (``http://`` and a
+  name and port the Host rule takes) is refused with 403: another site's page cannot
+  read the live states.  A handshake without ``Origin`` is taken: browsers always send
+  one, so it comes from a program (a test, ``curl``), which the Host rule has let in
+  and which could read ``/api/state`` anyway.
+* The page's responses carry a Content-Security-Policy (scripts from this server only, no
+  inline script) and ``nosniff``; the page writes every string of a state or a capture
+  as text (``textContent``), never as HTML.
+
+Plain HTTP only, no proxy in front (the Host and Origin rules would refuse its names).
 
 The state of a tick (:func:`tick_state`): ``t``, the host (x, y, heading, speed, path
 radius, predicted pose), every tracked RV (id, x, y, heading, speed, zone now and
@@ -30,13 +45,18 @@ warnings with their range and threshold, and the counters of the panel.
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import ipaddress
 import json
 import math
+import socket
+from collections import Counter
 from collections.abc import Callable
 from importlib import resources
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
+from urllib.parse import urlsplit
 
-from aiohttp import WSMsgType, web
+from aiohttp import WSMsgType, hdrs, web
 
 from hil.capture.schema import hex_id, track_rows
 
@@ -52,6 +72,8 @@ PAGE_HEADERS = {
                                "base-uri 'none'; frame-ancestors 'none'",
     "X-Content-Type-Options": "nosniff",
 }
+#: The names every loopback address answers to.
+LOOPBACK = frozenset({"localhost", "127.0.0.1", "::1"})
 
 
 def tick_state(snap: MapSnapshot, host_sec_mark: int, panel: dict,
@@ -97,6 +119,8 @@ class Hub:
         #: Builds the newest tick's state when nobody has looked yet (a reference to the
         #: tick, no work): the first /api/state or browser gets it, not an empty state.
         self.unbuilt: Callable[[], dict] | None = None
+        #: What the guards refused (module docstring), for the OBU's counters.
+        self.counters: Counter[str] = _counters()
 
     def newest(self) -> str | None:
         """The newest state as JSON, built now if nobody had asked for it yet."""
@@ -118,9 +142,94 @@ class _Client:
         self.ready = asyncio.Event()
 
 
+def _counters() -> Counter[str]:
+    return Counter(dict.fromkeys(("refused_host", "refused_origin"), 0))
+
+
+def _name(text: str | None) -> tuple[str, int] | None:
+    """(host name or canonical IP address, port) of a ``Host`` header or an origin's
+    authority (``HOST[:PORT]``, ``[V6]:PORT``; port 80 when absent); None when malformed."""
+    if not text:
+        return None
+    try:
+        parts = urlsplit("//" + text)
+        host, port = parts.hostname, parts.port
+    except ValueError:
+        return None
+    if not host or parts.path or parts.query or parts.fragment or "@" in parts.netloc:
+        return None
+    host = host.removesuffix(".")
+    with contextlib.suppress(ValueError):
+        host = str(ipaddress.ip_address(host))
+    return host, 80 if port is None else port
+
+
+class Names:
+    """The names and ports the server answers to (module docstring), known once
+    :func:`start` has bound its sockets; before, nothing is answered."""
+
+    def __init__(self) -> None:
+        self.hosts: set[str] = set()
+        self.ports: set[int] = set()
+        self.any_ip = False  # bound to all interfaces: any IP address names it
+
+    def bind(self, host: str, sockets: list[Any]) -> None:
+        """Learn the names of ``host`` (as given to :func:`start`) bound as ``sockets``
+        (their ``getsockname()``)."""
+        given = _name(f"[{host}]" if ":" in host else host)
+        if given:
+            self.hosts.add(given[0])
+        for addr in sockets:
+            ip = ipaddress.ip_address(str(addr[0]).partition("%")[0])
+            self.ports.add(int(addr[1]))
+            self.hosts.add(str(ip))
+            if ip.is_loopback:
+                self.hosts |= LOOPBACK
+            if ip.is_unspecified:
+                self.any_ip = True
+                me = socket.gethostname().lower()
+                self.hosts |= LOOPBACK | {me, me.partition(".")[0]}
+
+    def allows(self, named: tuple[str, int] | None) -> bool:
+        if named is None or named[1] not in self.ports:
+            return False
+        if named[0] in self.hosts:
+            return True
+        if self.any_ip:
+            try:
+                ipaddress.ip_address(named[0])
+                return True
+            except ValueError:
+                pass
+        return False
+
+    def allows_origin(self, origin: str) -> bool:
+        """An ``Origin`` header of a page of this server (``http://NAME:PORT``)."""
+        scheme, _, rest = origin.partition("://")
+        return scheme.lower() == "http" and self.allows(_name(rest))
+
+
+NAMES = web.AppKey("names", Names)
+COUNTERS = web.AppKey("counters", Counter)
+
+
 def make_app(hub: Hub | None = None, replay: Replay | None = None) -> web.Application:
     """The application: live over ``hub``, or a finished capture's ``replay``."""
-    app = web.Application()
+    names = Names()
+    counters = hub.counters if hub is not None else _counters()
+
+    @web.middleware
+    async def only_our_names(request: web.Request, handler: Callable) -> web.StreamResponse:
+        host = request.headers.get(hdrs.HOST)
+        if not names.allows(_name(host)):
+            counters["refused_host"] += 1
+            raise web.HTTPMisdirectedRequest(
+                text=f"Host {host!r} is not a name of this server (DNS rebinding?)")
+        return await handler(request)
+
+    app = web.Application(middlewares=[only_our_names])
+    app[NAMES] = names
+    app[COUNTERS] = counters
     pkg = resources.files("obu").joinpath("web")
 
     def static(name: str) -> Callable:
@@ -157,6 +266,10 @@ def make_app(hub: Hub | None = None, replay: Replay | None = None) -> web.Applic
         return web.json_response(replay.index())
 
     async def ws(request: web.Request) -> web.WebSocketResponse:
+        origin = request.headers.get(hdrs.ORIGIN)
+        if origin is not None and not names.allows_origin(origin):
+            counters["refused_origin"] += 1
+            raise web.HTTPForbidden(text=f"a WebSocket from {origin!r}: not this page")
         sock = web.WebSocketResponse(heartbeat=10.0)
         await sock.prepare(request)
         if hub is None:
@@ -202,10 +315,12 @@ def make_app(hub: Hub | None = None, replay: Replay | None = None) -> web.Applic
 
 
 async def start(app: web.Application, host: str, port: int) -> web.AppRunner:
-    """Serve ``app`` on ``host:port`` on the running loop; the runner, for cleanup."""
+    """Serve ``app`` on ``host:port`` on the running loop; the runner, for cleanup.  From
+    here on the app answers to the names of ``host`` (:class:`Names`)."""
     runner = web.AppRunner(app, access_log=None, handle_signals=False)
     await runner.setup()
     await web.TCPSite(runner, host, port).start()
+    app[NAMES].bind(host, runner.addresses)
     return runner
 
 

@@ -317,7 +317,7 @@ def test_live_view_draws_each_rv_at_its_pixel(browser):
             page.close()
 
 
-# --- who may look: text not HTML, Host, Origin ------------------------------------------------
+# --- who may look: text not HTML, Host, Origin, the cap, clients that do not read -----------
 
 #: Strings a crafted capture could hold: each sets window.__pwned if the page runs it.
 _XSS = ['<img src=x onerror="window.__pwned=1">', "<script>window.__pwned=2</script>",
@@ -387,6 +387,13 @@ def _ws(port: int, origin: str | None = None, host: str | None = "127.0.0.1:{por
     extra = _UPGRADE + (f"Origin: {origin.format(port=port)}\r\n" if origin else "")
     status, s, _ = _request(port, "/ws", host=host, headers=extra)
     return status, s
+
+
+def _frame(payload: bytes) -> bytes:
+    """A masked text frame (what a client sends)."""
+    mask = b"\x01\x02\x03\x04"
+    return (bytes([0x81, 0x80 | len(payload)]) + mask
+            + bytes(b ^ mask[i % 4] for i, b in enumerate(payload)))
 
 
 def _live(**kw):
@@ -488,3 +495,101 @@ def test_websockets_from_another_origin_are_refused(browser):
         finally:
             page.close()
         assert hub.counters["refused_origin"] >= 9
+
+
+def test_at_most_32_websockets_are_served(browser):
+    hub, make = _live()
+    with _serve(make) as port:
+        socks = []
+        try:
+            for _ in range(32):
+                status, s = _ws(port)
+                socks.append(s)
+                assert status == 101
+            status, s = _ws(port)
+            s.close()
+            assert status == 503
+            socks.pop().close()  # one goes away: its place is free again
+            deadline = time.monotonic() + 10
+            while True:
+                status, s = _ws(port)
+                socks.append(s)
+                if status == 101 or time.monotonic() > deadline:
+                    break
+                time.sleep(0.1)
+            assert status == 101
+            assert _status(port, "/api/state") == 200  # the page itself is still served
+        finally:
+            for s in socks:
+                s.close()
+    from obu.web import MAX_CLIENTS
+
+    assert MAX_CLIENTS == 32 and hub.counters["refused_full"] >= 1
+
+
+def _tcp_state(s: socket.socket) -> int:
+    """The kernel's TCP state of ``s`` (1: established; 7: closed, 8: closed by the peer)."""
+    return s.getsockopt(socket.IPPROTO_TCP, socket.TCP_INFO, 8)[0]
+
+
+def test_a_websocket_client_that_sends_but_never_reads_is_cut_off(capsys):
+    """A client that does the handshake by hand, then sends a frame every 0.2 s and never
+    reads, against a server publishing 64 kB states at 50 Hz: it is reset within seconds,
+    counted and logged once, while what waits for it never exceeds the bound; a client
+    that reads meanwhile is served throughout."""
+    import aiohttp
+
+    from obu import web as obu_web
+
+    hub, make = _live()
+    pad = "x" * 65536
+    state_bytes = len(json.dumps({"t": 10 ** 6, "pad": pad}, separators=(",", ":")))
+    got = {"messages": 0, "closed": False}
+    port_box: list[int] = []
+
+    async def publish() -> None:
+        i = 0
+        while True:
+            hub.publish({"t": i, "pad": pad})
+            i += 1
+            await asyncio.sleep(0.02)
+
+    async def reader() -> None:  # a browser: reads everything (and answers pings)
+        while not port_box:
+            await asyncio.sleep(0.01)
+        async with aiohttp.ClientSession() as session, \
+                session.ws_connect(f"http://127.0.0.1:{port_box[0]}/ws") as ws:
+            async for _ in ws:
+                got["messages"] += 1
+        got["closed"] = True
+
+    with _serve(make, background=(publish, reader)) as port:
+        port_box.append(port)
+        status, lazy = _ws(port)
+        assert status == 101
+        t0 = time.monotonic()
+        cut_after = None
+        try:
+            while time.monotonic() - t0 < 15:
+                try:
+                    lazy.sendall(_frame(b"still here"))  # it talks, it never listens
+                except OSError:
+                    cut_after = time.monotonic() - t0
+                    break
+                if _tcp_state(lazy) != 1:
+                    cut_after = time.monotonic() - t0
+                    break
+                time.sleep(0.2)
+            assert cut_after is not None, "a client that never reads was never cut off"
+            assert cut_after < 12, cut_after
+            served = got["messages"]
+            time.sleep(1.0)
+            assert got["messages"] > served > 50 and not got["closed"]  # still served
+        finally:
+            lazy.close()
+    assert cut_after > obu_web.STALL_S  # not before the stall bound
+    assert hub.counters["cut_off"] == 1
+    # never more than the bound and one state waited for a client
+    assert 0 < hub.counters["backlog_max_bytes"] <= obu_web.BACKLOG_BYTES + state_bytes + 1024
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if "cut off" in ln]
+    assert len(lines) == 1 and "read nothing" in lines[0], lines

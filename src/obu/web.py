@@ -30,6 +30,14 @@ Who may look (issue 28):
   read the live states.  A handshake without ``Origin`` is taken: browsers always send
   one, so it comes from a program (a test, ``curl``), which the Host rule has let in
   and which could read ``/api/state`` anyway.
+* **At most** :data:`MAX_CLIENTS` WebSockets at once; one more is refused with 503.
+* **A browser that does not read is cut off**: it is sent the next state only once less
+  than :data:`BACKLOG_BYTES` wait for it (in the loop's buffer and the kernel's send
+  queue, ``TIOCOUTQ``), so what a browser holds of the server's memory is bounded; one
+  whose backlog stays above that for :data:`STALL_S` seconds (or whose send blocks that
+  long) is aborted (a reset: a close would wait for it to read), counted
+  (``web_cut_off``) and logged on stderr, at most a line a second.  Sending to the OBU
+  does not keep such a client alive: what it sends is read and dropped.
 * The page's responses carry a Content-Security-Policy (scripts from this server only, no
   inline script) and ``nosniff``; the page writes every string of a state or a capture
   as text (``textContent``), never as HTML.
@@ -50,6 +58,8 @@ import ipaddress
 import json
 import math
 import socket
+import struct
+import sys
 from collections import Counter
 from collections.abc import Callable
 from importlib import resources
@@ -72,8 +82,24 @@ PAGE_HEADERS = {
                                "base-uri 'none'; frame-ancestors 'none'",
     "X-Content-Type-Options": "nosniff",
 }
+#: WebSockets served at once; one more is refused with 503.
+MAX_CLIENTS = 32
+#: A browser gets the next state only when less than this waits for it (bytes).
+BACKLOG_BYTES = 256 * 1024
+#: A browser whose backlog stays above BACKLOG_BYTES this long (s) is cut off.
+STALL_S = 5.0
+#: How often a backed-up browser's backlog is looked at again (s).
+POLL_S = 0.1
 #: The names every loopback address answers to.
 LOOPBACK = frozenset({"localhost", "127.0.0.1", "::1"})
+
+try:
+    import fcntl
+    import termios
+
+    _OUTQ: int | None = termios.TIOCOUTQ  # == SIOCOUTQ: unacknowledged bytes of a socket
+except (ImportError, AttributeError):  # not Linux: the loop's buffer only
+    _OUTQ = None
 
 
 def tick_state(snap: MapSnapshot, host_sec_mark: int, panel: dict,
@@ -119,7 +145,7 @@ class Hub:
         #: Builds the newest tick's state when nobody has looked yet (a reference to the
         #: tick, no work): the first /api/state or browser gets it, not an empty state.
         self.unbuilt: Callable[[], dict] | None = None
-        #: What the guards refused (module docstring), for the OBU's counters.
+        #: What the guards refused and cut off (module docstring), for the OBU's counters.
         self.counters: Counter[str] = _counters()
 
     def newest(self) -> str | None:
@@ -143,7 +169,8 @@ class _Client:
 
 
 def _counters() -> Counter[str]:
-    return Counter(dict.fromkeys(("refused_host", "refused_origin"), 0))
+    return Counter(dict.fromkeys(("refused_host", "refused_origin", "refused_full",
+                                  "cut_off", "backlog_max_bytes"), 0))
 
 
 def _name(text: str | None) -> tuple[str, int] | None:
@@ -213,10 +240,49 @@ NAMES = web.AppKey("names", Names)
 COUNTERS = web.AppKey("counters", Counter)
 
 
-def make_app(hub: Hub | None = None, replay: Replay | None = None) -> web.Application:
-    """The application: live over ``hub``, or a finished capture's ``replay``."""
+def _backlog(transport: asyncio.BaseTransport | None) -> int:
+    """Bytes written to a client that it has not yet acknowledged: the loop's buffer and
+    the kernel's send queue."""
+    if transport is None:
+        return 0
+    n = transport.get_write_buffer_size()  # type: ignore[attr-defined]
+    sock = transport.get_extra_info("socket")
+    if _OUTQ is not None and sock is not None:
+        with contextlib.suppress(OSError, ValueError):  # closed meanwhile
+            n += struct.unpack("i", fcntl.ioctl(sock.fileno(), _OUTQ, b"\0" * 4))[0]
+    return n
+
+
+class _CutOffLog:
+    """One stderr line per cut-off client, at most one a second (a flood of clients that
+    do not read must not flood the log); every one is counted."""
+
+    def __init__(self) -> None:
+        self.last = -math.inf
+
+    def __call__(self, counters: Counter[str], transport: asyncio.BaseTransport | None,
+                 peer: Any, stalled: float) -> None:
+        backlog = _backlog(transport)
+        if transport is not None:
+            transport.abort()  # a reset: a close would wait for it to read
+        counters["cut_off"] += 1
+        now = asyncio.get_running_loop().time()
+        if now - self.last >= 1.0:
+            self.last = now
+            print(f"obu: live view: cut off a browser at {peer} that read nothing for "
+                  f"{stalled:.1f} s ({backlog} bytes waiting; {counters['cut_off']} cut off "
+                  "so far)", file=sys.stderr, flush=True)
+
+
+def make_app(hub: Hub | None = None, replay: Replay | None = None, *,
+             max_clients: int = MAX_CLIENTS, backlog_bytes: int = BACKLOG_BYTES,
+             stall_s: float = STALL_S) -> web.Application:
+    """The application: live over ``hub``, or a finished capture's ``replay``; the limits
+    of the module docstring."""
     names = Names()
     counters = hub.counters if hub is not None else _counters()
+    cut_off = _CutOffLog()
+    open_sockets = [0]  # WebSockets being served
 
     @web.middleware
     async def only_our_names(request: web.Request, handler: Callable) -> web.StreamResponse:
@@ -270,11 +336,23 @@ def make_app(hub: Hub | None = None, replay: Replay | None = None) -> web.Applic
         if origin is not None and not names.allows_origin(origin):
             counters["refused_origin"] += 1
             raise web.HTTPForbidden(text=f"a WebSocket from {origin!r}: not this page")
+        if open_sockets[0] >= max_clients:
+            counters["refused_full"] += 1
+            raise web.HTTPServiceUnavailable(
+                text=f"the live view serves {max_clients} WebSockets at most")
+        open_sockets[0] += 1
+        try:
+            return await _serve(request)
+        finally:
+            open_sockets[0] -= 1
+
+    async def _serve(request: web.Request) -> web.WebSocketResponse:
         sock = web.WebSocketResponse(heartbeat=10.0)
         await sock.prepare(request)
         if hub is None:
             await sock.close()
             return sock
+        transport = request.transport
         client = _Client()
         hub.clients.add(client)
         if hub.newest() is not None:
@@ -287,22 +365,39 @@ def make_app(hub: Hub | None = None, replay: Replay | None = None) -> web.Applic
                     break
 
         reader = asyncio.create_task(drain())
+        loop = asyncio.get_running_loop()
+        since = None  # when the backlog went above backlog_bytes
         try:
             while not sock.closed and not reader.done():
-                waiter = asyncio.create_task(client.ready.wait())
-                await asyncio.wait({waiter, reader}, return_when=asyncio.FIRST_COMPLETED)
-                waiter.cancel()
-                if reader.done():
-                    break
-                client.ready.clear()
+                backlog = _backlog(transport)
+                counters["backlog_max_bytes"] = max(counters["backlog_max_bytes"], backlog)
+                if backlog > backlog_bytes:  # keep the newest state; look again soon
+                    since = loop.time() if since is None else since
+                    if loop.time() - since > stall_s:
+                        cut_off(counters, transport, request.remote, loop.time() - since)
+                        break
+                    await asyncio.wait({reader}, timeout=POLL_S)
+                    continue
+                since = None
+                if client.slot is None:
+                    client.ready.clear()
+                    waiter = asyncio.create_task(client.ready.wait())
+                    await asyncio.wait({waiter, reader}, return_when=asyncio.FIRST_COMPLETED)
+                    waiter.cancel()
+                    continue
                 text, client.slot = client.slot, None
-                if text is not None:
-                    await sock.send_str(text)
+                try:
+                    await asyncio.wait_for(sock.send_str(text), stall_s)
+                except TimeoutError:
+                    cut_off(counters, transport, request.remote, stall_s)
+                    break
         except (ConnectionResetError, RuntimeError):
             pass
         finally:
             hub.clients.discard(client)
             reader.cancel()
+            if transport is not None and transport.get_write_buffer_size() > 0:
+                transport.abort()  # nobody reads it: a close would wait for ever
         return sock
 
     app.router.add_get("/", static("index.html"))

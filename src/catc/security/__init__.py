@@ -1,0 +1,73 @@
+"""IEEE 1609.2-2016 security for BSMs: a test PKI, signing, and a bounded verifier.
+
+Pure: keys are ``cryptography`` objects, certificates and messages are octets; nothing
+here touches files or the network (:meth:`Pki.private_pem` gives PEM octets for a CLI to
+write, :func:`load_private_pem` reads them back).  The wire formats are in
+:mod:`catc.j2735.ieee1609`; this package adds the cryptography (ECDSA over NIST P-256 with
+SHA-256, the only algorithms it supports): ``_crypto`` time, hashing, signing;
+``_pki`` keys, certificates and the test PKI; ``_verify`` the verifier.
+
+Signatures (§5.3.1)
+    The data to sign is hashed as ``H = SHA-256( SHA-256(data input) ||
+    SHA-256(signer identifier input) )``.  The data input is the COER
+    ``ToBeSignedData`` for signed messages (§6.3.4) and the COER ``ToBeSignedCertificate``
+    for certificates (§6.4.8).  The signer identifier input is the canonical COER of the
+    signer's certificate, or the empty string when self-signed.  ECDSA is applied to
+    ``H``: here the outer SHA-256 is computed in Python and handed to ``cryptography`` as
+    ``ECDSA(Prehashed(SHA256()))``.  That equals ``ECDSA(SHA256())`` over the 64-octet
+    concatenation, and ``openssl dgst -sha256`` over it.  Signatures are sent as r || s
+    with rSig x-only.  When the installed OpenSSL supports it, signing is deterministic
+    (RFC 6979), so a seeded PKI and its signed messages are reproducible octet for octet.
+
+Time (base types Time32, Time64)
+    Time32 and Time64 count TAI seconds and microseconds since 2004-01-01 00:00:00 UTC.
+    TAI−UTC was 32 s at that epoch and has been 37 s since 2017-01-01.  So a UTC instant
+    after 2016 is ``unix − 1 072 915 200 + 5`` s in these units.  :func:`unix_to_time64`
+    and :func:`time64_to_unix` apply the five leap seconds inserted since 2004 at their
+    true dates (end of 2005, 2008, June 2012, June 2015, 2016).  No leap second has been
+    announced after 2016; a new one would need a new table entry.  Wireshark's 1609.2
+    dissector converts the same way (a test checks this).
+
+Verification (:class:`Verifier`)
+    The verifier trusts the roots it is given.  It verifies a certificate chain once and
+    then keeps every verified certificate by HashedId8 in a bounded LRU cache, so a BSM
+    with a cached signer costs one ECDSA verification.  A ``digest`` signer that is not
+    cached yet is ``unknown-signer``: that is normal, since vehicles attach the
+    certificate only now and then.
+"""
+
+from catc.security._crypto import (
+    hash_input,
+    sign_bsm,
+    sign_data,
+    time64_to_unix,
+    unix_to_time32,
+    unix_to_time64,
+)
+from catc.security._pki import (
+    Identity,
+    Pki,
+    issue_certificate,
+    load_private_pem,
+    make_pki,
+    private_pem,
+)
+from catc.security._verify import VERDICT_REASONS, Verdict, Verifier
+
+__all__ = [
+    "VERDICT_REASONS",
+    "Identity",
+    "Pki",
+    "Verdict",
+    "Verifier",
+    "hash_input",
+    "issue_certificate",
+    "load_private_pem",
+    "make_pki",
+    "private_pem",
+    "sign_bsm",
+    "sign_data",
+    "time64_to_unix",
+    "unix_to_time32",
+    "unix_to_time64",
+]

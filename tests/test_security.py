@@ -27,6 +27,7 @@ from hypothesis import strategies as st
 
 from catc.bsm import BSM
 from catc.errors import DecodeError
+from catc.j2735 import open_envelope
 from catc.j2735.ieee1609 import (
     build_signed,
     parse_certificate,
@@ -518,3 +519,57 @@ def test_sign_and_verify_cost(capsys: pytest.CaptureFixture[str]) -> None:
     with capsys.disabled():
         print(f"\n1609.2 per BSM: sign {sign_us:.0f} µs, verify (cached cert) {verify_us:.0f} µs")
     assert verify_us < 3000 and sign_us < 3000  # generous: a loaded 2-core machine
+
+
+# --- issue 28: the envelope and the signature's encoding ------------------------------------
+
+
+
+def _with_header(header: bytes, i: int = 0) -> bytes:
+    """A message of pseudonym ``i`` (certificate signer) whose headerInfo is ``header``
+    (psid 0x20 first), signed as sign_bsm signs."""
+    p = _pki().pseudonyms[i]
+    tbs = b"\x40" + wrap_unsecured(FRAME) + header
+    signature = sign_data(tbs, p.key, p.raw)
+    return b"\x03\x81\x00" + tbs + b"\x81\x01\x01" + p.raw + b"\x80\x80" + signature
+
+
+def _header(gen: int, expiry: int | None = None) -> bytes:
+    if expiry is None:
+        return b"\x40\x01\x20" + gen.to_bytes(8, "big")
+    return b"\x60\x01\x20" + gen.to_bytes(8, "big") + expiry.to_bytes(8, "big")
+
+
+def test_header_expiry_time_in_the_past_is_message_expired() -> None:
+    assert _with_header(_header(NOW)) == _msg()  # the hand-made header is sign_bsm's
+    v = _verifier()
+    assert v.verify(_with_header(_header(NOW, NOW - 1)), NOW).reason == "message-expired"
+    assert v.verify(_with_header(_header(NOW - 500_000, NOW - 100_000)),
+                    NOW).reason == "message-expired"  # fresh, but expired 0.1 s ago
+    # expiring before it was generated: no time at which it was ever valid
+    assert v.verify(_with_header(_header(NOW + 500_000, NOW + 200_000)),
+                    NOW).reason == "message-expired"
+    assert v.verify(_with_header(_header(NOW, NOW + 100_000)), NOW).reason == "ok"
+    assert v.verify(_with_header(_header(NOW - 1, NOW)), NOW).reason == "ok"  # to the µs
+
+
+def test_signed_data_inside_signed_data_is_nested() -> None:
+    """An outer SignedData around a valid message: the verifier would check only the
+    inner one, so the outer layer (here signed by nobody it trusts) is refused."""
+    inner = _msg()
+    q = _other_pki().pseudonyms[0]
+    tbs = b"\x40" + inner + _header(NOW)
+    outer = (b"\x03\x81\x00" + tbs + b"\x81\x01\x01" + q.raw + b"\x80\x80"
+             + sign_data(tbs, q.key, q.raw))
+    v = _verifier()
+    assert v.verify(outer, NOW).reason == "nested"
+    assert v.verify(inner, NOW).reason == "ok"
+    assert unwrap(outer).frame == FRAME and unwrap(outer).signed_layers == 2
+
+
+def test_a_wsm_for_another_psid_is_wsmp_psid() -> None:
+    v = _verifier()
+    frame, envelope = open_envelope(wrap_wsmp(_msg(), psid=0x87))
+    assert frame == FRAME and v.verify(envelope, NOW).reason == "wsmp-psid"
+    frame, envelope = open_envelope(wrap_wsmp(_msg(1), psid=0x20))
+    assert frame == FRAME and v.verify(envelope, NOW).reason == "ok"

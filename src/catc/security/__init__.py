@@ -34,6 +34,26 @@ Verification (:class:`Verifier`)
     with a cached signer costs one ECDSA verification.  A ``digest`` signer that is not
     cached yet is ``unknown-signer``: that is normal, since vehicles attach the
     certificate only now and then.
+
+The envelope (issue 28)
+    A BSM is one ``SignedData`` (hashId sha256) whose payload is ``unsecuredData``
+    holding the MessageFrame, optionally in a WAVE Short Message.  What else arrives is
+    refused, each with its reason:
+
+    * ``unsigned``: unsecured data where a signature is required (the OBU's
+      ``--verify``), or no 1609.2 envelope at all.
+    * ``nested``: signed data inside signed data.  :func:`catc.j2735.ieee1609.unwrap`
+      reports the innermost layer, the one that signs the frame; the outer layers'
+      headers and signatures would go unchecked, so an outer layer could say anything.
+    * ``wsmp-psid``: the WSMP header addresses another PSID than the verifier's (0x20,
+      BSMs) when the frame came in a WSM (:func:`catc.j2735.open_envelope` records it).
+      The headerInfo psid must be 0x20 too (``wrong-psid``).
+    * The WSMP version and the ``Ieee1609Dot2Data`` protocolVersion must be 3.  Those
+      are not verdicts but decode errors (:func:`catc.j2735.open_envelope`, ``unwrap``,
+      ``unwrap_wsmp``: ``unsupported`` or ``garbage``), since nothing after an unknown
+      version can be read: the OBU drops such a frame in every mode.
+    * ``message-expired``: a headerInfo expiryTime before the receive time (or before the
+      generationTime), a relevance check (§5.2) like the freshness of generationTime.
 """
 
 from catc.security._crypto import (

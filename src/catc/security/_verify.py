@@ -1,5 +1,7 @@
 """The verifier of :mod:`catc.security` (:class:`Verifier`, :class:`Verdict`): the chain
-of certificates to a trusted root, the header's relevance checks and ECDSA."""
+of certificates to a trusted root, the header's relevance checks, the envelope's outer
+layers and ECDSA; the module docstring of :mod:`catc.security` says what each verdict
+means and why."""
 
 from __future__ import annotations
 
@@ -14,12 +16,14 @@ from catc.j2735.ieee1609 import PSID_BSM, Certificate, Unwrapped, parse_certific
 from catc.security._crypto import EMPTY_HASH, sha256, verify_digest
 
 #: Every :attr:`Verdict.reason`.  Beyond "ok": no signature at all; a signature this
-#: module cannot check (implicit certificate, other curve or hash); a digest signer not
-#: in the cache; a certificate chain that is broken, too long or not under a trusted
-#: root; a signer not permitted for the PSID; outside the validity period; a
-#: generationTime too old or too far ahead; an ECDSA signature that does not verify.
-VERDICT_REASONS = ("ok", "unsigned", "unsupported", "unknown-signer", "chain", "wrong-psid",
-                   "expired", "stale", "bad-signature")
+#: module cannot check (implicit certificate, other curve or hash); signed data nested in
+#: signed data; a WSMP header for another PSID; a digest signer not in the cache; a
+#: certificate chain that is broken, too long or not under a trusted root; a signer not
+#: permitted for the PSID; outside the validity period; a generationTime too old or too
+#: far ahead; a headerInfo expiryTime passed; an ECDSA signature that does not verify.
+VERDICT_REASONS = ("ok", "unsigned", "unsupported", "nested", "wsmp-psid", "unknown-signer",
+                   "chain", "wrong-psid", "expired", "stale", "message-expired",
+                   "bad-signature")
 
 
 @dataclass(frozen=True)
@@ -193,29 +197,37 @@ class Verifier:
 
     def verify(self, data: bytes | Unwrapped, now_us: int) -> Verdict:
         """Check one message at ``now_us`` (Time64).  Raises :class:`DecodeError` for
-        octets that are not an ``Ieee1609Dot2Data`` at all (as :func:`unwrap` does)."""
+        octets that are not an ``Ieee1609Dot2Data`` at all (as :func:`unwrap` does).
+
+        The checks run cheapest first and the first that fails is the verdict."""
         u = data if isinstance(data, Unwrapped) else unwrap(data)
         if u.security != "signed":
             return Verdict(False, "unsigned", u.frame)
-        if u.unsupported:
-            return Verdict(False, "unsupported", u.frame, u.signer_digest)
-        if u.signer_kind == "digest":
-            signer = self._lookup(u.signer_digest)
-            if signer is None:
-                return Verdict(False, "unknown-signer", u.frame, u.signer_digest)
-        elif u.signer_kind == "certificate":
-            signer = self._chain(u.signer_certs)
-            if signer is None:
-                return Verdict(False, "chain", u.frame, u.signer_digest)
-        else:  # "self": self-signed data carries no key to verify it with
-            return Verdict(False, "unknown-signer", u.frame, None)
+        assert u.tbs_data is not None
 
         def fail(reason: str) -> Verdict:
             return Verdict(False, reason, u.frame, u.signer_digest)
 
+        tbs_hash = sha256(u.tbs_data)
+        if u.unsupported:
+            return fail("unsupported")
+        if u.signed_layers > 1:
+            return fail("nested")
+        if u.wsmp_psid is not None and u.wsmp_psid != self.psid:
+            return fail("wsmp-psid")
+        if u.signer_kind == "digest":
+            signer = self._lookup(u.signer_digest)
+            if signer is None:
+                return fail("unknown-signer")
+        elif u.signer_kind == "certificate":
+            signer = self._chain(u.signer_certs)
+            if signer is None:
+                return fail("chain")
+        else:  # "self": self-signed data carries no key to verify it with
+            return Verdict(False, "unknown-signer", u.frame, None)
         if u.psid != self.psid or self.psid not in signer.cert.app_psids:
             return fail("wrong-psid")
-        generation = u.generation_time_us
+        generation, expiry = u.generation_time_us, u.expiry_time_us
         for instant in (now_us, generation):
             if instant is not None and not (
                 signer.not_before <= instant // 1_000_000 < signer.not_after
@@ -224,9 +236,9 @@ class Verifier:
         if (generation is None or now_us - generation > self.max_age_us
                 or generation - now_us > self.max_future_us):
             return fail("stale")
-        assert u.tbs_data is not None
-        if not verify_digest(signer.key, u.signature,
-                             sha256(sha256(u.tbs_data) + signer.cert_hash)):
+        if expiry is not None and (expiry < now_us or expiry < generation):
+            return fail("message-expired")
+        if not verify_digest(signer.key, u.signature, sha256(tbs_hash + signer.cert_hash)):
             return fail("bad-signature")
         return Verdict(True, "ok", u.frame, u.signer_digest)
 

@@ -38,6 +38,7 @@ from catc.j2735.ieee1609 import (
 )
 from catc.j2735.uper import encode_frame
 from catc.security import (
+    P256_ORDER,
     VERDICT_REASONS,
     Identity,
     Pki,
@@ -380,12 +381,16 @@ def test_unsigned_and_unsupported() -> None:
 
 
 def test_signature_r_forms() -> None:
-    """rSig may be sent x-only or as the compressed point R (its x is r): both verify;
-    ``fill`` is no 32-octet r at all and does not decode."""
-    v = _verifier()
+    """rSig may be sent x-only or as the compressed point R (its x is r): both verify
+    where non-canonical encodings are allowed, only x-only where they are not (the
+    default); ``fill`` is no 32-octet r at all and does not decode."""
     msg = _msg()
     assert msg[-66:-64] == b"\x80\x80"
-    assert v.verify(msg[:-65] + b"\x82" + msg[-64:], NOW).reason == "ok"
+    compressed = msg[:-65] + b"\x82" + msg[-64:]
+    assert _verifier(canonical_only=False).verify(compressed, NOW).reason == "ok"
+    v = _verifier()
+    assert v.verify(compressed, NOW).reason == "non-canonical"
+    assert v.verify(msg, NOW).reason == "ok"
     with pytest.raises(DecodeError) as err:
         v.verify(msg[:-65] + b"\x81" + msg[-32:], NOW)
     assert err.value.reason == "garbage"
@@ -525,6 +530,9 @@ def test_sign_and_verify_cost(capsys: pytest.CaptureFixture[str]) -> None:
 
 
 
+N = P256_ORDER
+
+
 def _with_header(header: bytes, i: int = 0) -> bytes:
     """A message of pseudonym ``i`` (certificate signer) whose headerInfo is ``header``
     (psid 0x20 first), signed as sign_bsm signs."""
@@ -573,3 +581,38 @@ def test_a_wsm_for_another_psid_is_wsmp_psid() -> None:
     assert frame == FRAME and v.verify(envelope, NOW).reason == "wsmp-psid"
     frame, envelope = open_envelope(wrap_wsmp(_msg(1), psid=0x20))
     assert frame == FRAME and v.verify(envelope, NOW).reason == "ok"
+
+
+def _resign(msg: bytes, r_octets: bytes, s: int) -> bytes:
+    """``msg`` with its signature replaced: rSig as given (choice and octets), s."""
+    return msg[:-65] + r_octets + s.to_bytes(32, "big")
+
+
+def test_sign_bsm_signs_low_s() -> None:
+    p = _pki().pseudonyms[0]
+    sigs = [sign_bsm(FRAME, p.key, p.raw, NOW + i, include_cert=False)[-32:] for i in range(64)]
+    assert all(int.from_bytes(s, "big") <= N // 2 for s in sigs)
+
+
+def test_malleated_signatures_are_non_canonical() -> None:
+    """Encodings anyone can make from a valid signature without the key: the high-S twin
+    (r, n - s), and rSig sent as the point R with either y bit or any y.  ECDSA accepts
+    them all (the lenient verifier says ok); the default verifier only the original."""
+    msg = _msg()
+    r, s = msg[-64:-32], int.from_bytes(msg[-32:], "big")
+    twins = {
+        "high-S": _resign(msg, b"\x80" + r, N - s),
+        "compressed-y-0": _resign(msg, b"\x82" + r, s),
+        "compressed-y-1": _resign(msg, b"\x83" + r, s),
+        "uncompressed, any y": _resign(msg, b"\x84" + r + bytes(range(32)), s),
+        "compressed, high-S": _resign(msg, b"\x83" + r, N - s),
+    }
+    for name, twin in twins.items():
+        assert _verifier(canonical_only=False).verify(twin, NOW).ok, name
+        assert _verifier().verify(twin, NOW).reason == "non-canonical", name
+    # out of range: r or s of 0, r of n or more (no x-only r is), s of n
+    r0 = int.from_bytes(r, "big")
+    for r_int, s_int in ((0, s), (r0, 0), (N, s), (2**256 - 1, s), (r0, N)):
+        bad = _resign(msg, b"\x80" + r_int.to_bytes(32, "big"), s_int)
+        assert _verifier().verify(bad, NOW).reason == "non-canonical", (r_int, s_int)
+    assert _verifier().verify(msg, NOW).ok

@@ -16,8 +16,9 @@ Signatures (§5.3.1)
     ``H``: here the outer SHA-256 is computed in Python and handed to ``cryptography`` as
     ``ECDSA(Prehashed(SHA256()))``.  That equals ``ECDSA(SHA256())`` over the 64-octet
     concatenation, and ``openssl dgst -sha256`` over it.  Signatures are sent as r || s
-    with rSig x-only.  When the installed OpenSSL supports it, signing is deterministic
-    (RFC 6979), so a seeded PKI and its signed messages are reproducible octet for octet.
+    with rSig x-only and s low (below n/2).  When the installed OpenSSL supports it,
+    signing is deterministic (RFC 6979), so a seeded PKI and its signed messages are
+    reproducible octet for octet.
 
 Time (base types Time32, Time64)
     Time32 and Time64 count TAI seconds and microseconds since 2004-01-01 00:00:00 UTC.
@@ -54,9 +55,28 @@ The envelope (issue 28)
       version can be read: the OBU drops such a frame in every mode.
     * ``message-expired``: a headerInfo expiryTime before the receive time (or before the
       generationTime), a relevance check (§5.2) like the freshness of generationTime.
+
+Canonical signatures (``non-canonical``)
+    ECDSA verification (FIPS 186-4) checks ``r = x(R) mod n`` and ``s``, and (r, n − s)
+    verifies whenever (r, s) does: anyone can turn a valid signature into a second valid
+    one without the key.  1609.2 adds encodings: rSig is an ``EccP256CurvePoint``, sent
+    ``x-only`` (the integer r) or, "to allow for fast verification" (SEC 1), as the point
+    R itself, ``compressed-y-0``, ``compressed-y-1`` or ``uncompressed``, "at the sender's
+    discretion"; ``fill`` carries no r and does not decode.  This verifier checks the
+    FIPS way, from r alone (``cryptography`` takes no R), so it never looks at y: with R
+    compressed both y-0 and y-1 would verify, and uncompressed any 32 octets of y.
+    Every form that carries y is therefore malleable here, and so is a high s, and so is
+    an r of n or more (x(R) lies in [n, p) with probability 2^-128: never honestly).
+    Only ``x-only`` with 1 <= r < n and 1 <= s <= (n − 1)/2 is accepted: from it, no
+    other accepted encoding of a valid signature can be made without the key.  The cost:
+    1609.2 requires neither low s nor x-only, and the one real signed BSM of
+    ``../shared/data`` (the ODE's ``decoder-input-bsm.json``) has rSig compressed-y-0
+    and a high s; ``Verifier(canonical_only=False)`` takes such senders.  :func:`sign_bsm`
+    signs in the canonical form.
 """
 
 from catc.security._crypto import (
+    P256_ORDER,
     hash_input,
     sign_bsm,
     sign_data,
@@ -72,14 +92,16 @@ from catc.security._pki import (
     make_pki,
     private_pem,
 )
-from catc.security._verify import VERDICT_REASONS, Verdict, Verifier
+from catc.security._verify import VERDICT_REASONS, Verdict, Verifier, canonical
 
 __all__ = [
+    "P256_ORDER",
     "VERDICT_REASONS",
     "Identity",
     "Pki",
     "Verdict",
     "Verifier",
+    "canonical",
     "hash_input",
     "issue_certificate",
     "load_private_pem",

@@ -1,5 +1,9 @@
 """The cryptography of :mod:`catc.security`: 1609.2 time, the hash input of §5.3.1, and
-ECDSA P-256 signing and verification of a digest (``cryptography``)."""
+ECDSA P-256 signing and verification of a digest (``cryptography``).
+
+Signatures are made low-S (``s <= (n - 1) / 2``): ECDSA accepts (r, n - s) as readily
+as (r, s), and the verifier takes only the low one (see :mod:`catc.security`).
+"""
 
 from __future__ import annotations
 
@@ -67,14 +71,16 @@ def hash_input(tbs: bytes, signer_cert: bytes | None) -> bytes:
 
 
 def sign_digest(key: ec.EllipticCurvePrivateKey, digest: bytes) -> bytes:
-    """r || s (64 octets) over a 32-octet ``digest``."""
+    """r || s (64 octets) over a 32-octet ``digest``, with s low (``s <= (n - 1) / 2``)."""
     r, s = utils.decode_dss_signature(key.sign(digest, _SIGN))
+    s = min(s, P256_ORDER - s)
     return r.to_bytes(32, "big") + s.to_bytes(32, "big")
 
 
 def verify_digest(key: ec.EllipticCurvePublicKey, signature: bytes | None,
                   digest: bytes) -> bool:
-    """Whether r || s ``signature`` is ``key``'s ECDSA signature over ``digest``."""
+    """Whether r || s ``signature`` is ``key``'s ECDSA signature over ``digest`` (either
+    s: the verifier checks the encoding apart)."""
     if signature is None or len(signature) != 64:
         return False
     r, s = int.from_bytes(signature[:32], "big"), int.from_bytes(signature[32:], "big")

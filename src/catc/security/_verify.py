@@ -1,7 +1,7 @@
 """The verifier of :mod:`catc.security` (:class:`Verifier`, :class:`Verdict`): the chain
 of certificates to a trusted root, the header's relevance checks, the envelope's outer
-layers and ECDSA; the module docstring of :mod:`catc.security` says what each verdict
-means and why."""
+layers, the signature's encoding and ECDSA; the module docstring of
+:mod:`catc.security` says what each verdict means and why."""
 
 from __future__ import annotations
 
@@ -13,17 +13,20 @@ from cryptography.hazmat.primitives.asymmetric import ec
 
 from catc.errors import DecodeError
 from catc.j2735.ieee1609 import PSID_BSM, Certificate, Unwrapped, parse_certificate, unwrap
-from catc.security._crypto import EMPTY_HASH, sha256, verify_digest
+from catc.security._crypto import EMPTY_HASH, P256_ORDER, sha256, verify_digest
 
 #: Every :attr:`Verdict.reason`.  Beyond "ok": no signature at all; a signature this
 #: module cannot check (implicit certificate, other curve or hash); signed data nested in
-#: signed data; a WSMP header for another PSID; a digest signer not in the cache; a
-#: certificate chain that is broken, too long or not under a trusted root; a signer not
-#: permitted for the PSID; outside the validity period; a generationTime too old or too
-#: far ahead; a headerInfo expiryTime passed; an ECDSA signature that does not verify.
-VERDICT_REASONS = ("ok", "unsigned", "unsupported", "nested", "wsmp-psid", "unknown-signer",
-                   "chain", "wrong-psid", "expired", "stale", "message-expired",
-                   "bad-signature")
+#: signed data; a WSMP header for another PSID; a signature not in its canonical encoding
+#: (rSig not x-only, s high); a digest signer not in the cache; a certificate chain that
+#: is broken, too long or not under a trusted root; a signer not permitted for the PSID;
+#: outside the validity period; a generationTime too old or too far ahead; a headerInfo
+#: expiryTime passed; an ECDSA signature that does not verify.
+VERDICT_REASONS = ("ok", "unsigned", "unsupported", "nested", "wsmp-psid", "non-canonical",
+                   "unknown-signer", "chain", "wrong-psid", "expired", "stale",
+                   "message-expired", "bad-signature")
+
+_HALF_ORDER = P256_ORDER // 2  # (n - 1) / 2: the largest low s
 
 
 @dataclass(frozen=True)
@@ -68,6 +71,16 @@ def _public_key(cert: Certificate) -> ec.EllipticCurvePublicKey | None:
         return None
 
 
+def canonical(u: Unwrapped) -> bool:
+    """Whether the signature of ``u`` is in the one encoding this verifier accepts: rSig
+    x-only, 1 <= r < n and 1 <= s <= (n - 1) / 2 (see :mod:`catc.security`)."""
+    sig = u.signature
+    if u.signature_r_form != "x-only" or sig is None or len(sig) != 64:
+        return False
+    r, s = int.from_bytes(sig[:32], "big"), int.from_bytes(sig[32:], "big")
+    return 0 < r < P256_ORDER and 0 < s <= _HALF_ORDER
+
+
 class Verifier:
     """Verifies signed BSMs against trusted root certificates; stateful and bounded.
 
@@ -84,6 +97,10 @@ class Verifier:
     security profile of the application sets how far generationTime may lie in the past
     and in the future.  The defaults here, ``max_age_us`` 2 s and ``max_future_us`` 1 s,
     are this testbench's choice for 10 Hz BSMs, not figures taken from SAE J2945/1.
+
+    ``canonical_only=False`` accepts the signature encodings that 1609.2 allows and that
+    anyone can derive from a valid signature (rSig as a point, high s); see
+    :mod:`catc.security`.
     """
 
     def __init__(
@@ -96,11 +113,13 @@ class Verifier:
         psid: int = PSID_BSM,
         max_age_us: int = 2_000_000,
         max_future_us: int = 1_000_000,
+        canonical_only: bool = True,
     ) -> None:
         if max_certs < 1 or max_chain < 1:
             raise ValueError("max_certs and max_chain must be positive")
         self.max_certs, self.max_chain, self.psid = max_certs, max_chain, psid
         self.max_age_us, self.max_future_us = max_age_us, max_future_us
+        self.canonical_only = canonical_only
         self.cert_checks = 0  # certificate signatures verified so far (roots excluded)
         self._roots: dict[bytes, _Trusted] = {}
         self._cache: OrderedDict[bytes, _Trusted] = OrderedDict()
@@ -238,6 +257,8 @@ class Verifier:
             return fail("stale")
         if expiry is not None and (expiry < now_us or expiry < generation):
             return fail("message-expired")
+        if self.canonical_only and not canonical(u):
+            return fail("non-canonical")
         if not verify_digest(signer.key, u.signature, sha256(tbs_hash + signer.cert_hash)):
             return fail("bad-signature")
         return Verdict(True, "ok", u.frame, u.signer_digest)

@@ -257,10 +257,11 @@ def test_legit_chain_verifies_and_certificates_are_checked_once() -> None:
     verdict = v.verify(_msg(), NOW + 20_000)
     assert verdict == Verdict(True, "ok", FRAME, p.hashed_id8)
     assert v.cert_checks == 2  # the AA under the root, the pseudonym under the AA
-    assert v.verify(_msg(include_cert=False), NOW).ok
-    assert v.verify(_msg(), NOW).ok and v.cert_checks == 2  # cached: not verified again
-    assert v.verify(_msg(1), NOW).ok and v.cert_checks == 3  # the AA stays cached
-    assert v.verify(unwrap(_msg(1, include_cert=False)), NOW).ok  # Unwrapped is accepted too
+    # (each message once: the same ToBeSignedData again, whoever signs it, is a replay)
+    assert v.verify(_msg(include_cert=False, gen=NOW + 1), NOW).ok
+    assert v.verify(_msg(gen=NOW + 2), NOW).ok and v.cert_checks == 2  # cached: not again
+    assert v.verify(_msg(1, gen=NOW + 3), NOW).ok and v.cert_checks == 3  # the AA stays cached
+    assert v.verify(unwrap(_msg(1, include_cert=False, gen=NOW + 4)), NOW).ok  # Unwrapped too
     assert v.cache_size == 3 and p.hashed_id8 in v
 
 
@@ -268,7 +269,7 @@ def test_digest_before_certificate_is_unknown_then_known() -> None:
     v = _verifier()
     digest_msg = _msg(2, include_cert=False)
     assert v.verify(digest_msg, NOW).reason == "unknown-signer"
-    assert v.verify(_msg(2), NOW).reason == "ok"
+    assert v.verify(_msg(2, gen=NOW - 1), NOW).reason == "ok"
     assert v.verify(digest_msg, NOW).reason == "ok"
 
 
@@ -424,19 +425,19 @@ def test_chain_longer_than_allowed() -> None:
 def test_cache_is_lru_and_bounded() -> None:
     pki = make_pki(20, start_time32=START, duration_s=WEEK, seed=b"many")
     v = Verifier([pki.root.raw], certificates=[pki.aa.raw], max_certs=8)
-    for p in pki.pseudonyms:
-        assert v.verify(sign_bsm(FRAME, p.key, p.raw, NOW, include_cert=True), NOW).ok
+    for i, p in enumerate(pki.pseudonyms):
+        assert v.verify(sign_bsm(FRAME, p.key, p.raw, NOW + i, include_cert=True), NOW).ok
         assert v.cache_size <= 8
     first, last = pki.pseudonyms[0], pki.pseudonyms[-1]
-    assert v.verify(sign_bsm(FRAME, first.key, first.raw, NOW, include_cert=False),
+    assert v.verify(sign_bsm(FRAME, first.key, first.raw, NOW + 98, include_cert=False),
                     NOW).reason == "unknown-signer"  # evicted
-    assert v.verify(sign_bsm(FRAME, last.key, last.raw, NOW, include_cert=False), NOW).ok
+    assert v.verify(sign_bsm(FRAME, last.key, last.raw, NOW + 99, include_cert=False), NOW).ok
 
 
 def test_ten_thousand_unknown_digests_stay_bounded() -> None:
     v = _verifier(max_certs=64)
     assert v.verify(_msg(), NOW).ok
-    template = _msg(include_cert=False)
+    template = _msg(include_cert=False, gen=NOW + 1)  # not the message that verified
     digest_at = len(template) - 66 - 8
     reasons = set()
     for i in range(10_000):
@@ -448,10 +449,11 @@ def test_ten_thousand_unknown_digests_stay_bounded() -> None:
 
 def test_verify_many() -> None:
     v = _verifier()
-    items: list[bytes] = [_msg(include_cert=False), _msg(), _msg(include_cert=False), b"\x03\x81",
-                          wrap_unsecured(FRAME)]
+    items: list[bytes] = [_msg(include_cert=False), _msg(), _msg(include_cert=False, gen=NOW + 1),
+                          b"\x03\x81", wrap_unsecured(FRAME), _msg(include_cert=False)]
     out = v.verify_many(items, NOW)
-    assert [o.reason for o in out] == ["unknown-signer", "ok", "ok", "truncated", "unsigned"]
+    assert [o.reason for o in out] == ["unknown-signer", "ok", "ok", "truncated", "unsigned",
+                                       "replay"]
     assert isinstance(out[3], DecodeError) and v.cert_checks == 2
 
 
@@ -515,7 +517,7 @@ def test_sign_and_verify_cost(capsys: pytest.CaptureFixture[str]) -> None:
     assert v.verify(_msg(), NOW).ok
     n = 300
     t0 = time.perf_counter()
-    msgs = [sign_bsm(FRAME, p.key, p.raw, NOW + i, include_cert=False) for i in range(n)]
+    msgs = [sign_bsm(FRAME, p.key, p.raw, NOW + 1 + i, include_cert=False) for i in range(n)]
     t1 = time.perf_counter()
     verdicts = [v.verify(m, NOW) for m in msgs]
     t2 = time.perf_counter()
@@ -527,7 +529,6 @@ def test_sign_and_verify_cost(capsys: pytest.CaptureFixture[str]) -> None:
 
 
 # --- issue 28: the envelope and the signature's encoding ------------------------------------
-
 
 
 N = P256_ORDER

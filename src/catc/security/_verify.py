@@ -1,6 +1,6 @@
 """The verifier of :mod:`catc.security` (:class:`Verifier`, :class:`Verdict`): the chain
 of certificates to a trusted root, the header's relevance checks, the envelope's outer
-layers, the signature's encoding and ECDSA; the module docstring of
+layers, the signature's encoding, replays, and ECDSA; the module docstring of
 :mod:`catc.security` says what each verdict means and why."""
 
 from __future__ import annotations
@@ -14,20 +14,21 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from catc.errors import DecodeError
 from catc.j2735.ieee1609 import PSID_BSM, Certificate, Unwrapped, parse_certificate, unwrap
 from catc.security._crypto import EMPTY_HASH, P256_ORDER, sha256, verify_digest
+from catc.security._replay import ReplayCache
 
-#: Every :attr:`Verdict.reason`.  Beyond "ok": no signature at all; a signature this
-#: module cannot check (implicit certificate, other curve or hash); signed data nested in
-#: signed data; a WSMP header for another PSID; a signature not in its canonical encoding
-#: (rSig not x-only, s high); a digest signer not in the cache; a certificate chain that
-#: is broken, too long or not under a trusted root; a signer not permitted for the PSID;
-#: outside the validity period; a generationTime too old or too far ahead; a headerInfo
-#: expiryTime passed; an ECDSA signature that does not verify.
-VERDICT_REASONS = ("ok", "unsigned", "unsupported", "nested", "wsmp-psid", "non-canonical",
-                   "unknown-signer", "chain", "wrong-psid", "expired", "stale",
-                   "message-expired", "bad-signature")
+#: Every :attr:`Verdict.reason`.  Beyond "ok": no signature at all; a copy of a message
+#: already accepted; a signature this module cannot check (implicit certificate, other
+#: curve or hash); signed data nested in signed data; a WSMP header for another PSID; a
+#: signature not in its canonical encoding (rSig not x-only, s high); a digest signer
+#: not in the cache; a certificate chain that is broken, too long or not under a trusted
+#: root; a signer not permitted for the PSID; outside the validity period; a
+#: generationTime too old or too far ahead; a headerInfo expiryTime passed; an ECDSA
+#: signature that does not verify.
+VERDICT_REASONS = ("ok", "unsigned", "replay", "unsupported", "nested", "wsmp-psid",
+                   "non-canonical", "unknown-signer", "chain", "wrong-psid", "expired",
+                   "stale", "message-expired", "bad-signature")
 
 _HALF_ORDER = P256_ORDER // 2  # (n - 1) / 2: the largest low s
-
 
 @dataclass(frozen=True)
 class Verdict:
@@ -98,9 +99,12 @@ class Verifier:
     and in the future.  The defaults here, ``max_age_us`` 2 s and ``max_future_us`` 1 s,
     are this testbench's choice for 10 Hz BSMs, not figures taken from SAE J2945/1.
 
-    ``canonical_only=False`` accepts the signature encodings that 1609.2 allows and that
-    anyone can derive from a valid signature (rSig as a point, high s); see
-    :mod:`catc.security`.
+    Replays: the SHA-256 of the ToBeSignedData of every message accepted is kept until
+    the message would be ``stale`` (at most ``max_replays`` of them, oldest evicted
+    first; :attr:`replays`); a message with the same ToBeSignedData is then ``replay``.
+    ``max_replays=0`` turns that off.  ``canonical_only=False`` accepts the signature
+    encodings that 1609.2 allows and that anyone can derive from a valid signature (rSig
+    as a point, high s); see :mod:`catc.security`.
     """
 
     def __init__(
@@ -113,13 +117,17 @@ class Verifier:
         psid: int = PSID_BSM,
         max_age_us: int = 2_000_000,
         max_future_us: int = 1_000_000,
+        max_replays: int = 200_000,
         canonical_only: bool = True,
     ) -> None:
-        if max_certs < 1 or max_chain < 1:
-            raise ValueError("max_certs and max_chain must be positive")
+        if max_certs < 1 or max_chain < 1 or max_replays < 0:
+            raise ValueError("max_certs and max_chain must be positive, max_replays not "
+                             "negative")
         self.max_certs, self.max_chain, self.psid = max_certs, max_chain, psid
         self.max_age_us, self.max_future_us = max_age_us, max_future_us
         self.canonical_only = canonical_only
+        #: the messages accepted within the freshness window (None: no replay check)
+        self.replays = ReplayCache(max_replays) if max_replays else None
         self.cert_checks = 0  # certificate signatures verified so far (roots excluded)
         self._roots: dict[bytes, _Trusted] = {}
         self._cache: OrderedDict[bytes, _Trusted] = OrderedDict()
@@ -218,7 +226,8 @@ class Verifier:
         """Check one message at ``now_us`` (Time64).  Raises :class:`DecodeError` for
         octets that are not an ``Ieee1609Dot2Data`` at all (as :func:`unwrap` does).
 
-        The checks run cheapest first and the first that fails is the verdict."""
+        The checks run cheapest first and the first that fails is the verdict; a copy of
+        a message already accepted is ``replay`` before anything else is looked at."""
         u = data if isinstance(data, Unwrapped) else unwrap(data)
         if u.security != "signed":
             return Verdict(False, "unsigned", u.frame)
@@ -228,6 +237,8 @@ class Verifier:
             return Verdict(False, reason, u.frame, u.signer_digest)
 
         tbs_hash = sha256(u.tbs_data)
+        if self.replays is not None and self.replays.seen(tbs_hash, now_us):
+            return fail("replay")
         if u.unsupported:
             return fail("unsupported")
         if u.signed_layers > 1:
@@ -261,6 +272,8 @@ class Verifier:
             return fail("non-canonical")
         if not verify_digest(signer.key, u.signature, sha256(tbs_hash + signer.cert_hash)):
             return fail("bad-signature")
+        if self.replays is not None:  # only now: a forgery must not make the real one a replay
+            self.replays.add(tbs_hash, generation + self.max_age_us, now_us)
         return Verdict(True, "ok", u.frame, u.signer_digest)
 
     def verify_many(

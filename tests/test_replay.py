@@ -1,4 +1,6 @@
-"""Replays (issue 28): the verifier's replay cache (:mod:`catc.security`).
+"""Replays (issue 28): the verifier's replay cache (:mod:`catc.security`) and what the OBU
+does with a replay (:mod:`obu.frames`), up to ``rve run --attack replay`` into ``obu run
+--verify enforce --mbd``.
 
 * A copy of an accepted message is a ``replay``, octet for octet or re-encoded in any
   way that needs no key (the other s, rSig as a point, another signer field, a WSM).
@@ -6,15 +8,22 @@
   ToBeSignedData does not make that message a replay.
 * The cache forgets a message when it would be stale anyway, and holds at most
   ``max_replays`` hashes.
+* The OBU drops a replay under enforce, tracks it under log, and never hands it to
+  misbehavior detection: the leader whose frames are replayed is not quarantined and
+  its FCW fires as in the clean run.
 """
 
 from __future__ import annotations
 
+import argparse
+import json
+from collections import Counter
 from functools import cache
 
 import pytest
 
 from catc.bsm import BSM
+from catc.cam import SecMarkClock
 from catc.j2735 import encode_frame, open_envelope
 from catc.j2735.ieee1609 import build_signed, wrap_wsmp
 from catc.security import (
@@ -24,7 +33,13 @@ from catc.security import (
     Verifier,
     make_pki,
     sign_bsm,
+    time64_to_unix,
 )
+from hil.transport.udp import free_ports
+from obu.frames import Frames
+from obu.status import RateLimitedLog
+from tests.test_obu import finish, rve, score, start_obu
+from tests.test_security_e2e import pki  # noqa: F401  (fixture)
 
 FRAME = encode_frame(BSM(msg_cnt=7, temp_id=0x12345678, sec_mark=1000, lat=42.3, lon=-83.7,
                          elev=200.0, speed=13.4, heading=90.0))
@@ -147,4 +162,96 @@ def test_max_replays_zero_turns_the_check_off() -> None:
     assert v.verify(_msg(), NOW).ok and v.verify(_msg(), NOW).ok
 
 
+# --- the OBU's receive path ----------------------------------------------------------------------
 
+
+class _Capture:
+    """What obu.frames records of the frames it does not queue."""
+
+    def __init__(self) -> None:
+        self.frames: list[tuple[str, dict]] = []
+
+    def frame(self, rx_unix, channel, data, status, **details) -> None:
+        self.frames.append((status, details))
+
+
+def _frames(mode: str) -> tuple[Frames, list, _Capture]:
+    """obu.frames at ``--verify mode --mbd``, with the test PKI's verifier and a spy on
+    the misbehavior checks."""
+    args = argparse.Namespace(verify="off", trust=None, mbd=True, host_id=None)
+    cap = _Capture()
+    fr = Frames(args, Counter(), RateLimitedLog(), SecMarkClock(), cap, lambda _id: False)
+    from catc.security import unix_to_time64
+
+    fr.verifier, fr.to_time64, fr.enforce = _verifier(), unix_to_time64, mode == "enforce"
+    checked: list[int] = []
+    misbehaves = fr.misbehaves
+
+    def spy(bsm, rx_unix, data):
+        checked.append(bsm.msg_cnt)
+        return misbehaves(bsm, rx_unix, data)
+
+    fr.misbehaves = spy
+    return fr, checked, cap
+
+
+@pytest.mark.parametrize("mode", ["enforce", "log"])
+def test_the_obu_never_gives_a_replay_to_misbehavior_detection(mode: str) -> None:
+    fr, checked, cap = _frames(mode)
+    rx = time64_to_unix(NOW)
+    msg = _msg(NOW - 100_000)
+    s = int.from_bytes(msg[-32:], "big")
+    high_s = msg[:-32] + (P256_ORDER - s).to_bytes(32, "big")
+    fr.take("rv", msg, rx)
+    assert checked == [7] and len(fr.pending) == 1
+    for copy in (msg, high_s, wrap_wsmp(msg)):
+        assert fr.take("rv", copy, rx + 0.5) is None
+    assert checked == [7]  # no check saw a copy
+    assert fr.counters["verify_ok"] == 1 and fr.counters["verify_replay"] == 3
+    if mode == "enforce":
+        assert len(fr.pending) == 1 and fr.counters["verify_rejected"] == 3
+        assert [(st, d["verdict"], d["sender"][0]) for st, d in cap.frames] == [
+            ("rejected", "replay", 0x12345678)] * 3
+    else:  # tracked, with its verdict, as log mode tracks every failure
+        assert len(fr.pending) == 4 and fr.counters["verify_failed"] == 3
+        assert [fr.pending_rx[id(m)][2] for m in fr.pending] == ["ok"] + ["replay"] * 3
+        assert cap.frames == []
+
+
+# --- rve run --attack replay into obu run --verify enforce --mbd --------------------------------
+
+
+def _run(trust, cap, *attack: str) -> dict:
+    ports = free_ports()
+    obu = start_obu(cap, ports, "--predictor", "ca", "--verify", "enforce", "--trust",
+                    str(trust), "--mbd", "--collect-ms", "30")
+    summary = rve(ports, "--sign", str(trust), "--per", "0", "--speed", "8", "--duration", "30",
+                  "--capture", str(cap), *attack)
+    finish(obu)
+    return summary
+
+
+def test_a_replayed_leader_is_not_quarantined_and_its_fcw_still_fires(pki, tmp_path):  # noqa: F811
+    """``--attack replay:vehicle=lead,delay=1,start=10``: the leader's own frames again,
+    1 s late, inside the freshness window.  Every copy is dropped as ``replay`` before
+    misbehavior detection, so nothing is reported against the leader, it is not
+    quarantined, and the FCW on it fires at the same ticks as in the clean run."""
+    clean, attacked = tmp_path / "clean", tmp_path / "replay"
+    _run(pki, clean)
+    summary = _run(pki, attacked, "--attack", "replay:vehicle=lead,delay=1,start=10")
+    assert summary["attack_frames"] > 100
+    # nobody quarantined, nothing reported, no check fired
+    rx = [json.loads(line) for line in (attacked / "obu.rx.jsonl").open()]
+    assert not [r for r in rx if r["status"] == "quarantined"]
+    assert (attacked / "obu.mbr.jsonl").read_text() == ""
+    counters = json.loads((attacked / "obu.counters.json").read_text())
+    assert not {k for k in counters if k.startswith("mbd_") and k != "mbd_no_host_yet"}
+    # the FCW on the leader, and every app, as in the clean run
+    a, b = score(attacked), score(clean)
+    assert a["fcw"]["tp"] > 0 and a["fcw"] == b["fcw"]
+    assert a["apps"] == b["apps"]
+    assert a["received"] == b["received"]
+    # every copy dropped as a replay
+    assert counters["verify_replay"] == counters["verify_rejected"] == summary["attack_frames"]
+    assert a["attacks"]["replay"]["rejected"] == {"replay": summary["attack_frames"]}
+    assert {r["verdict"] for r in rx if r["status"] == "rejected"} == {"replay"}

@@ -16,6 +16,12 @@ root CA, AA, pseudonyms, all explicit P-256 certificates):
   AA already verified), so the verifier checks the pseudonym certificate under the AA
   and then the message: two ECDSA verifications each.  Each pass starts a new
   ``Verifier``, made outside the timing;
+* ``Verifier.verify`` of a copy of a message it accepted: refused as ``replay`` from its
+  replay cache, before the chain and ECDSA (issue 28);
+* the replay cache alone (``catc.security.ReplayCache``): ``seen`` then ``add`` of a
+  hash, the cache full at its cap of 200,000 (each add evicts the oldest), the per-frame
+  cost that every accepted message pays; and the memory the full cache takes
+  (tracemalloc);
 * ``catc.j2735.ieee1609.build_signed`` alone (the COER of a digest-signed message around
   a given signature, no cryptography) and ``unwrap`` alone (parsing), both signer kinds:
   what the 1609.2 encoding adds to the ECDSA operations;
@@ -57,6 +63,7 @@ from collections.abc import Callable, Sequence  # noqa: E402
 
 N_MESSAGES = 200
 N_VEHICLES = 500  # the round-robin signing row: as the RVE signs at 500 RVs
+N_REPLAYS = 200_000  # catc.security.Verifier's default replay cache cap
 SEED = "bench-security"
 
 # OpenSSL 3.x: "256 bits ecdsa (nistp256)   0.0000s   0.0001s  41758.0  12791.0"
@@ -117,6 +124,7 @@ def measure_ours(seconds: float) -> tuple[dict[str, dict], dict]:
 
     from catc.j2735.ieee1609 import PSID_BSM, build_signed, unwrap
     from catc.security import (
+        ReplayCache,
         Verifier,
         make_pki,
         sign_bsm,
@@ -128,6 +136,11 @@ def measure_ours(seconds: float) -> tuple[dict[str, dict], dict]:
     now_unix = time.time()
     now_us = unix_to_time64(now_unix)
     gen_us = [now_us - 50_000 - 1000 * i for i in range(len(frames))]  # fresh: < 2 s old
+    # the same frame at the same generationTime is the same ToBeSignedData whoever signs
+    # it, and the verifier refuses a second one as a replay: every message that one
+    # verifier sees gets its own generationTime (certificate rows 300 µs earlier, the
+    # warm-up messages 700 µs)
+    cert_gen = [g - 300 for g in gen_us]
     # pseudonym 0 signs the cached rows; 1..N_MESSAGES are the chain row's new ones; the
     # last one gets the AA verified before that row is timed; all sign in turn in one row
     pki = make_pki(max(N_MESSAGES + 2, N_VEHICLES), start_time32=unix_to_time32(now_unix) - 3600,
@@ -136,15 +149,21 @@ def measure_ours(seconds: float) -> tuple[dict[str, dict], dict]:
     digest_msgs = [sign_bsm(f, me.key, me.raw, g, include_cert=False)
                    for f, g in zip(frames, gen_us, strict=True)]
     cert_msgs = [sign_bsm(f, me.key, me.raw, g, include_cert=True)
-                 for f, g in zip(frames, gen_us, strict=True)]
+                 for f, g in zip(frames, cert_gen, strict=True)]
     new_msgs = [sign_bsm(f, p.key, p.raw, g, include_cert=True)
                 for f, p, g in zip(frames, pki.pseudonyms[1:N_MESSAGES + 1], gen_us, strict=True)]
-    warm = sign_bsm(frames[0], pki.pseudonyms[-1].key, pki.pseudonyms[-1].raw, gen_us[0],
-                    include_cert=True)
+    warm = sign_bsm(frames[0], pki.pseudonyms[-1].key, pki.pseudonyms[-1].raw,
+                    gen_us[0] - 700, include_cert=True)
+    my_warm = sign_bsm(frames[0], me.key, me.raw, gen_us[0] - 700, include_cert=True)
 
     def cached_verifier() -> Verifier:
         v = Verifier([pki.root.raw], certificates=[pki.aa.raw])
-        assert v.verify(cert_msgs[0], now_us).ok  # the signer's certificate, once
+        assert v.verify(my_warm, now_us).ok  # the signer's certificate, once
+        return v
+
+    def replaying_verifier() -> Verifier:
+        v = cached_verifier()
+        assert all(v.verify(m, now_us).ok for m in digest_msgs)  # accepted once
         return v
 
     def fresh_verifier() -> Verifier:
@@ -159,6 +178,8 @@ def measure_ours(seconds: float) -> tuple[dict[str, dict], dict]:
     checks = v.cert_checks
     assert all(v.verify(m, now_us).ok for m in new_msgs)
     chain_ecdsa = 1 + (v.cert_checks - checks) / len(new_msgs)
+    v = replaying_verifier()
+    assert {v.verify(m, now_us).reason for m in digest_msgs} == {"replay"}
 
     def verify_ok(verifier: Verifier, m: bytes) -> None:
         verifier.verify(m, now_us)
@@ -194,6 +215,17 @@ def measure_ours(seconds: float) -> tuple[dict[str, dict], dict]:
     row("verify_new_pseudonym", "verify",
         best_rate(verify_ok, new_msgs, seconds, fresh_verifier),
         chain_ecdsa, f"verify, new pseudonym each ({N_MESSAGES}): chain check")
+    row("verify_replay", "replay",
+        best_rate(verify_ok, digest_msgs, seconds, replaying_verifier),
+        0, "verify, a copy of an accepted message: replay")
+    full, new_keys, until = replay_cache_full(now_us)
+
+    def seen_then_add(replays: ReplayCache, key: bytes) -> None:
+        if not replays.seen(key, now_us):
+            replays.add(key, until, now_us)
+
+    row("replay_cache_add", "cache", best_rate(seen_then_add, new_keys, seconds, full), 0,
+        f"replay cache seen + add, full ({N_REPLAYS:,})")
     signature = digest_msgs[0][-64:]
     row("build_digest", "encode",
         best_rate(lambda fg: build_signed(fg[0], psid=PSID_BSM, generation_time_us=fg[1],
@@ -227,12 +259,53 @@ def measure_ours(seconds: float) -> tuple[dict[str, dict], dict]:
 
     from cryptography.hazmat.backends.openssl import backend
 
-    sizes = {"frame_octets": sum(map(len, frames)) / len(frames),
+    sizes = {"replay_cache_mb_full": replay_cache_mb(now_us),
+             "frame_octets": sum(map(len, frames)) / len(frames),
              "signed_digest_octets": sum(map(len, digest_msgs)) / len(digest_msgs),
              "signed_certificate_octets": sum(map(len, cert_msgs)) / len(cert_msgs),
              "cryptography_openssl": backend.openssl_version_text(),
              "sign_bsm_deterministic": deterministic}
     return rows, sizes
+
+
+def replay_cache_full(now_us: int) -> tuple[Callable[[], object], list[bytes], int]:
+    """A maker of ``ReplayCache``s at their cap, full of live SHA-256 hashes; as many new
+    hashes to add to one (each add evicts the oldest); their end of life."""
+    import hashlib
+
+    from catc.security import ReplayCache
+
+    until = now_us + 3_000_000
+    old = [hashlib.sha256(i.to_bytes(8, "big")).digest() for i in range(N_REPLAYS)]
+    new = [hashlib.sha256(b"new" + i.to_bytes(8, "big")).digest() for i in range(N_REPLAYS)]
+
+    def full() -> ReplayCache:
+        replays = ReplayCache(N_REPLAYS)
+        for key in old:
+            replays.add(key, until, now_us)
+        return replays
+
+    return full, new, until
+
+
+def replay_cache_mb(now_us: int) -> float:
+    """MB (10^6 octets) that a full ``ReplayCache`` holds, as ``tracemalloc`` counts it:
+    as the verifier fills it, a new hash and a new end of life per entry."""
+    import hashlib
+    import tracemalloc
+
+    from catc.security import ReplayCache
+
+    tracemalloc.start()
+    before = tracemalloc.get_traced_memory()[0]
+    replays = ReplayCache(N_REPLAYS)
+    for i in range(replays.max_entries):
+        replays.add(hashlib.sha256(i.to_bytes(8, "big")).digest(), now_us + 3_000_000 + i,
+                    now_us)
+    size = tracemalloc.get_traced_memory()[0] - before
+    tracemalloc.stop()
+    assert len(replays) == replays.max_entries
+    return size / 1e6
 
 
 def measure_openssl(seconds: float, no_peer: bool) -> dict:
@@ -304,6 +377,7 @@ def main(argv: list[str] | None = None) -> int:
         ratio = f"{r['ratio_to_openssl']:>12.2f}" if ref else f"{'-':>12}"
         print(f"{r['what']:<48} {r['ecdsa_per_op']:>5.3g} {r['ops_per_s']:>9,.0f} "
               f"{r['us_per_op']:>8.1f} {ref_s} {ratio}")
+    print(f"replay cache full ({N_REPLAYS:,} hashes): {sizes['replay_cache_mb_full']:.1f} MB")
     if "skipped" in peer:
         print(f"openssl speed ecdsap256: skipped ({peer['skipped']})")
     else:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import re
@@ -16,6 +17,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from catc.errors import DecodeError, EncodeError
+from catc.j2735 import open_envelope
 from catc.j2735.ieee1609 import (
     ISSUE_ALL,
     Certificate,
@@ -116,9 +118,12 @@ def test_signed_synthetic_variants() -> None:
     assert (u.frame, u.security, u.psid, u.generation_time_us) == (frame, "signed", 0x20, 12345)
     u = unwrap(_signed(wrap_unsecured(frame), psid=0x204097, ext_hash=True))
     assert (u.psid, u.generation_time_us) == (0x204097, None)
-    # signed inside signed: the header of the layer that signs the frame is reported
+    assert u.signed_layers == 1 and u.wsmp_psid is None
+    # signed inside signed: the header of the layer that signs the frame is reported, and
+    # the number of layers (the verifier refuses more than one)
     u = unwrap(_signed(_signed(wrap_unsecured(frame), psid=0x20, gen_time=7), psid=0x8F))
     assert (u.frame, u.psid, u.generation_time_us) == (frame, 0x20, 7)
+    assert u.signed_layers == 2
 
 
 @pytest.mark.parametrize(
@@ -566,6 +571,43 @@ def test_wsmp_encode_limits_and_sniff() -> None:
     assert not looks_like_wsmp(b"\x00\x14")
     signed = build_signed(FRAME, generation_time_us=1, signer=("digest", DIGEST8), signature=SIG)
     assert unwrap(unwrap_wsmp(wrap_wsmp(signed))[0]).frame == FRAME
+
+
+def test_open_envelope_keeps_the_wsmp_psid() -> None:
+    signed = build_signed(FRAME, generation_time_us=1, signer=("digest", DIGEST8), signature=SIG)
+    for psid in (0x20, 0x87, 0x204097):
+        frame, u = open_envelope(wrap_wsmp(signed, psid=psid))
+        assert frame == FRAME and u is not None and u.wsmp_psid == psid
+        assert u == dataclasses.replace(unwrap(signed), wsmp_psid=psid)
+    frame, u = open_envelope(signed)  # no WSM: no WSMP PSID
+    assert frame == FRAME and u is not None and u.wsmp_psid is None
+    assert open_envelope(FRAME) == (FRAME, None)  # a bare UPER frame
+    assert open_envelope(wrap_wsmp(FRAME)) == (FRAME, None)
+
+
+@pytest.mark.parametrize("data", [
+    b"\x02\x00\x20\x05" + b"\x03\x80\x02ab",  # a WSM of version 2 around unsecured data
+    b"\x00\x01\x20\x01a",  # version 0, TPID 1
+    b"\x02\x80\x02ab",  # an Ieee1609Dot2Data of protocolVersion 2
+    b"\x04\x81\x00\x40",  # protocolVersion 4, signedData
+    wrap_wsmp(b"\x02\x80\x02ab"),  # version 3 WSM, protocolVersion 2 inside
+])
+def test_open_envelope_refuses_other_versions(data: bytes) -> None:
+    """A WSMP header or an ``Ieee1609Dot2Data`` of another version than 3 is refused
+    (``unsupported``), not taken for a bare UPER frame."""
+    with pytest.raises(DecodeError) as err:
+        open_envelope(data)
+    assert err.value.reason == "unsupported"
+    assert "version" in str(err.value).lower()
+
+
+@given(st.binary(max_size=80))
+def test_random_bytes_into_open_envelope(data: bytes) -> None:
+    try:
+        frame, u = open_envelope(data)
+    except DecodeError:
+        return
+    assert isinstance(frame, bytes) and (u is None or u.frame == frame)
 
 
 @given(st.binary(max_size=80))

@@ -27,6 +27,7 @@ from hypothesis import strategies as st
 
 from catc.bsm import BSM
 from catc.errors import DecodeError
+from catc.j2735 import open_envelope
 from catc.j2735.ieee1609 import (
     build_signed,
     parse_certificate,
@@ -37,6 +38,7 @@ from catc.j2735.ieee1609 import (
 )
 from catc.j2735.uper import encode_frame
 from catc.security import (
+    P256_ORDER,
     VERDICT_REASONS,
     Identity,
     Pki,
@@ -255,10 +257,11 @@ def test_legit_chain_verifies_and_certificates_are_checked_once() -> None:
     verdict = v.verify(_msg(), NOW + 20_000)
     assert verdict == Verdict(True, "ok", FRAME, p.hashed_id8)
     assert v.cert_checks == 2  # the AA under the root, the pseudonym under the AA
-    assert v.verify(_msg(include_cert=False), NOW).ok
-    assert v.verify(_msg(), NOW).ok and v.cert_checks == 2  # cached: not verified again
-    assert v.verify(_msg(1), NOW).ok and v.cert_checks == 3  # the AA stays cached
-    assert v.verify(unwrap(_msg(1, include_cert=False)), NOW).ok  # Unwrapped is accepted too
+    # (each message once: the same ToBeSignedData again, whoever signs it, is a replay)
+    assert v.verify(_msg(include_cert=False, gen=NOW + 1), NOW).ok
+    assert v.verify(_msg(gen=NOW + 2), NOW).ok and v.cert_checks == 2  # cached: not again
+    assert v.verify(_msg(1, gen=NOW + 3), NOW).ok and v.cert_checks == 3  # the AA stays cached
+    assert v.verify(unwrap(_msg(1, include_cert=False, gen=NOW + 4)), NOW).ok  # Unwrapped too
     assert v.cache_size == 3 and p.hashed_id8 in v
 
 
@@ -266,7 +269,7 @@ def test_digest_before_certificate_is_unknown_then_known() -> None:
     v = _verifier()
     digest_msg = _msg(2, include_cert=False)
     assert v.verify(digest_msg, NOW).reason == "unknown-signer"
-    assert v.verify(_msg(2), NOW).reason == "ok"
+    assert v.verify(_msg(2, gen=NOW - 1), NOW).reason == "ok"
     assert v.verify(digest_msg, NOW).reason == "ok"
 
 
@@ -379,12 +382,16 @@ def test_unsigned_and_unsupported() -> None:
 
 
 def test_signature_r_forms() -> None:
-    """rSig may be sent x-only or as the compressed point R (its x is r): both verify;
-    ``fill`` is no 32-octet r at all and does not decode."""
-    v = _verifier()
+    """rSig may be sent x-only or as the compressed point R (its x is r): both verify
+    where non-canonical encodings are allowed, only x-only where they are not (the
+    default); ``fill`` is no 32-octet r at all and does not decode."""
     msg = _msg()
     assert msg[-66:-64] == b"\x80\x80"
-    assert v.verify(msg[:-65] + b"\x82" + msg[-64:], NOW).reason == "ok"
+    compressed = msg[:-65] + b"\x82" + msg[-64:]
+    assert _verifier(canonical_only=False).verify(compressed, NOW).reason == "ok"
+    v = _verifier()
+    assert v.verify(compressed, NOW).reason == "non-canonical"
+    assert v.verify(msg, NOW).reason == "ok"
     with pytest.raises(DecodeError) as err:
         v.verify(msg[:-65] + b"\x81" + msg[-32:], NOW)
     assert err.value.reason == "garbage"
@@ -418,19 +425,19 @@ def test_chain_longer_than_allowed() -> None:
 def test_cache_is_lru_and_bounded() -> None:
     pki = make_pki(20, start_time32=START, duration_s=WEEK, seed=b"many")
     v = Verifier([pki.root.raw], certificates=[pki.aa.raw], max_certs=8)
-    for p in pki.pseudonyms:
-        assert v.verify(sign_bsm(FRAME, p.key, p.raw, NOW, include_cert=True), NOW).ok
+    for i, p in enumerate(pki.pseudonyms):
+        assert v.verify(sign_bsm(FRAME, p.key, p.raw, NOW + i, include_cert=True), NOW).ok
         assert v.cache_size <= 8
     first, last = pki.pseudonyms[0], pki.pseudonyms[-1]
-    assert v.verify(sign_bsm(FRAME, first.key, first.raw, NOW, include_cert=False),
+    assert v.verify(sign_bsm(FRAME, first.key, first.raw, NOW + 98, include_cert=False),
                     NOW).reason == "unknown-signer"  # evicted
-    assert v.verify(sign_bsm(FRAME, last.key, last.raw, NOW, include_cert=False), NOW).ok
+    assert v.verify(sign_bsm(FRAME, last.key, last.raw, NOW + 99, include_cert=False), NOW).ok
 
 
 def test_ten_thousand_unknown_digests_stay_bounded() -> None:
     v = _verifier(max_certs=64)
     assert v.verify(_msg(), NOW).ok
-    template = _msg(include_cert=False)
+    template = _msg(include_cert=False, gen=NOW + 1)  # not the message that verified
     digest_at = len(template) - 66 - 8
     reasons = set()
     for i in range(10_000):
@@ -442,10 +449,11 @@ def test_ten_thousand_unknown_digests_stay_bounded() -> None:
 
 def test_verify_many() -> None:
     v = _verifier()
-    items: list[bytes] = [_msg(include_cert=False), _msg(), _msg(include_cert=False), b"\x03\x81",
-                          wrap_unsecured(FRAME)]
+    items: list[bytes] = [_msg(include_cert=False), _msg(), _msg(include_cert=False, gen=NOW + 1),
+                          b"\x03\x81", wrap_unsecured(FRAME), _msg(include_cert=False)]
     out = v.verify_many(items, NOW)
-    assert [o.reason for o in out] == ["unknown-signer", "ok", "ok", "truncated", "unsigned"]
+    assert [o.reason for o in out] == ["unknown-signer", "ok", "ok", "truncated", "unsigned",
+                                       "replay"]
     assert isinstance(out[3], DecodeError) and v.cert_checks == 2
 
 
@@ -509,7 +517,7 @@ def test_sign_and_verify_cost(capsys: pytest.CaptureFixture[str]) -> None:
     assert v.verify(_msg(), NOW).ok
     n = 300
     t0 = time.perf_counter()
-    msgs = [sign_bsm(FRAME, p.key, p.raw, NOW + i, include_cert=False) for i in range(n)]
+    msgs = [sign_bsm(FRAME, p.key, p.raw, NOW + 1 + i, include_cert=False) for i in range(n)]
     t1 = time.perf_counter()
     verdicts = [v.verify(m, NOW) for m in msgs]
     t2 = time.perf_counter()
@@ -518,3 +526,94 @@ def test_sign_and_verify_cost(capsys: pytest.CaptureFixture[str]) -> None:
     with capsys.disabled():
         print(f"\n1609.2 per BSM: sign {sign_us:.0f} µs, verify (cached cert) {verify_us:.0f} µs")
     assert verify_us < 3000 and sign_us < 3000  # generous: a loaded 2-core machine
+
+
+# --- issue 28: the envelope and the signature's encoding ------------------------------------
+
+
+N = P256_ORDER
+
+
+def _with_header(header: bytes, i: int = 0) -> bytes:
+    """A message of pseudonym ``i`` (certificate signer) whose headerInfo is ``header``
+    (psid 0x20 first), signed as sign_bsm signs."""
+    p = _pki().pseudonyms[i]
+    tbs = b"\x40" + wrap_unsecured(FRAME) + header
+    signature = sign_data(tbs, p.key, p.raw)
+    return b"\x03\x81\x00" + tbs + b"\x81\x01\x01" + p.raw + b"\x80\x80" + signature
+
+
+def _header(gen: int, expiry: int | None = None) -> bytes:
+    if expiry is None:
+        return b"\x40\x01\x20" + gen.to_bytes(8, "big")
+    return b"\x60\x01\x20" + gen.to_bytes(8, "big") + expiry.to_bytes(8, "big")
+
+
+def test_header_expiry_time_in_the_past_is_message_expired() -> None:
+    assert _with_header(_header(NOW)) == _msg()  # the hand-made header is sign_bsm's
+    v = _verifier()
+    assert v.verify(_with_header(_header(NOW, NOW - 1)), NOW).reason == "message-expired"
+    assert v.verify(_with_header(_header(NOW - 500_000, NOW - 100_000)),
+                    NOW).reason == "message-expired"  # fresh, but expired 0.1 s ago
+    # expiring before it was generated: no time at which it was ever valid
+    assert v.verify(_with_header(_header(NOW + 500_000, NOW + 200_000)),
+                    NOW).reason == "message-expired"
+    assert v.verify(_with_header(_header(NOW, NOW + 100_000)), NOW).reason == "ok"
+    assert v.verify(_with_header(_header(NOW - 1, NOW)), NOW).reason == "ok"  # to the µs
+
+
+def test_signed_data_inside_signed_data_is_nested() -> None:
+    """An outer SignedData around a valid message: the verifier would check only the
+    inner one, so the outer layer (here signed by nobody it trusts) is refused."""
+    inner = _msg()
+    q = _other_pki().pseudonyms[0]
+    tbs = b"\x40" + inner + _header(NOW)
+    outer = (b"\x03\x81\x00" + tbs + b"\x81\x01\x01" + q.raw + b"\x80\x80"
+             + sign_data(tbs, q.key, q.raw))
+    v = _verifier()
+    assert v.verify(outer, NOW).reason == "nested"
+    assert v.verify(inner, NOW).reason == "ok"
+    assert unwrap(outer).frame == FRAME and unwrap(outer).signed_layers == 2
+
+
+def test_a_wsm_for_another_psid_is_wsmp_psid() -> None:
+    v = _verifier()
+    frame, envelope = open_envelope(wrap_wsmp(_msg(), psid=0x87))
+    assert frame == FRAME and v.verify(envelope, NOW).reason == "wsmp-psid"
+    frame, envelope = open_envelope(wrap_wsmp(_msg(1), psid=0x20))
+    assert frame == FRAME and v.verify(envelope, NOW).reason == "ok"
+
+
+def _resign(msg: bytes, r_octets: bytes, s: int) -> bytes:
+    """``msg`` with its signature replaced: rSig as given (choice and octets), s."""
+    return msg[:-65] + r_octets + s.to_bytes(32, "big")
+
+
+def test_sign_bsm_signs_low_s() -> None:
+    p = _pki().pseudonyms[0]
+    sigs = [sign_bsm(FRAME, p.key, p.raw, NOW + i, include_cert=False)[-32:] for i in range(64)]
+    assert all(int.from_bytes(s, "big") <= N // 2 for s in sigs)
+
+
+def test_malleated_signatures_are_non_canonical() -> None:
+    """Encodings anyone can make from a valid signature without the key: the high-S twin
+    (r, n - s), and rSig sent as the point R with either y bit or any y.  ECDSA accepts
+    them all (the lenient verifier says ok); the default verifier only the original."""
+    msg = _msg()
+    r, s = msg[-64:-32], int.from_bytes(msg[-32:], "big")
+    twins = {
+        "high-S": _resign(msg, b"\x80" + r, N - s),
+        "compressed-y-0": _resign(msg, b"\x82" + r, s),
+        "compressed-y-1": _resign(msg, b"\x83" + r, s),
+        "uncompressed, any y": _resign(msg, b"\x84" + r + bytes(range(32)), s),
+        "compressed, high-S": _resign(msg, b"\x83" + r, N - s),
+    }
+    for name, twin in twins.items():
+        assert _verifier(canonical_only=False).verify(twin, NOW).ok, name
+        assert _verifier().verify(twin, NOW).reason == "non-canonical", name
+    # out of range: r or s of 0, r of n or more (no x-only r is), s of n
+    r0 = int.from_bytes(r, "big")
+    for r_int, s_int in ((0, s), (r0, 0), (N, s), (2**256 - 1, s), (r0, N)):
+        bad = _resign(msg, b"\x80" + r_int.to_bytes(32, "big"), s_int)
+        assert _verifier().verify(bad, NOW).reason == "non-canonical", (r_int, s_int)
+    assert _verifier().verify(msg, NOW).ok

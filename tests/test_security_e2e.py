@@ -328,8 +328,8 @@ def test_hostile_security_input_is_counted_and_memory_stays_bounded(pki, tmp_pat
         send(good)
         time.sleep(0.3)
         rss0 = _rss_kb(obu.pid)
-        for i in range(10_000):
-            send(build_signed(frame, generation_time_us=now,
+        for i in range(10_000):  # now + 1: not good's ToBeSignedData (a copy is a replay)
+            send(build_signed(frame, generation_time_us=now + 1,
                               signer=("digest", rng.randbytes(8)),
                               signature=rng.randbytes(64)))
             if i % 200 == 199:
@@ -338,7 +338,7 @@ def test_hostile_security_input_is_counted_and_memory_stays_bounded(pki, tmp_pat
             send(good[:-cut])
         for cut in range(1, 40, 7):  # the certificate cut short
             send(good[:len(good) - 66 - cut])
-        send(build_signed(frame, generation_time_us=now, signer=("certificate", chain),
+        send(build_signed(frame, generation_time_us=now + 1, signer=("certificate", chain),
                           signature=rng.randbytes(64)))
         time.sleep(1.0)
         rss1 = _rss_kb(obu.pid)

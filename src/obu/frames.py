@@ -7,11 +7,19 @@ checked for misbehavior, counted, and an RV message queued for its tick.
   second, recorded with its reason as status, and dropped.
 * Security (``--verify log|enforce``): every RV frame's IEEE 1609.2 envelope (inside a
   WSMP message or not) is verified with :class:`catc.security.Verifier` at its receive
-  time: signature, chain to the trusted root, psid 0x20, validity period, generationTime
-  freshness.  Each verdict is counted (``verify_ok``, ``verify_<reason>``) and kept in the
-  frame's record; ``enforce`` drops a frame that fails (status ``rejected``), ``log``
-  tracks it anyway.  Host frames are not verified (they are the host's own state, not
-  radio traffic).
+  time: signature and its canonical encoding, chain to the trusted root, psid 0x20 (and
+  the WSM's), one signed layer, validity period, generationTime freshness, expiryTime,
+  replays (:mod:`catc.security`).  Each verdict is counted (``verify_ok``,
+  ``verify_<reason>``) and kept in the frame's record; ``enforce`` drops a frame that
+  fails (status ``rejected``), ``log`` tracks it anyway.  Host frames are not verified
+  (they are the host's own state, not radio traffic).
+* Replays never reach misbehavior detection, in either mode.  A ``replay`` is a copy of
+  a message already accepted, octet for octet or re-encoded: what it says about its
+  sender is what that sender said earlier, and sent again by someone else it is
+  evidence against the wrong vehicle (a leader replayed 1 s late "jumps back" and would
+  be quarantined, and its genuine frames dropped with it).  Under ``enforce`` it is
+  dropped (``verify_replay``, status ``rejected``); under ``log`` it is tracked with its
+  verdict, as every failure is there, but not given to the checks.
 * The host channel (:class:`obu.host.HostGate`): a host frame is believed only when it is
   the host's (``--host-id``, or the first id heard) and its own motion explains it; the
   rest are counted (``host_rejected``, ``host_<reason>``), logged at most once per reason
@@ -121,6 +129,11 @@ class Frames:
                     if self.cap is not None:
                         self.cap.frame(rx_unix, channel, data, "rejected",
                                        sender=claimed_sender(frame), verdict=verdict)
+                    return None
+                if verdict == "replay":  # log: tracked, but no evidence for MBD
+                    bsm = decode_frame(frame)
+                    self.pending.append(bsm)
+                    self.pending_rx[id(bsm)] = (rx_unix, data, verdict)
                     return None
             bsm = decode_frame(frame)
         except DecodeError as err:

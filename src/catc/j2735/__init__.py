@@ -1,7 +1,12 @@
 """SAE J2735 BasicSafetyMessage on the wire: UPER codec, IEEE 1609.2 and OBU log containers."""
 
+import dataclasses
+
 from catc.bsm import BSM
+from catc.errors import DecodeError
 from catc.j2735.ieee1609 import (
+    PROTOCOL_VERSION,
+    WSMP_VERSION,
     Unwrapped,
     looks_like_1609,
     looks_like_wsmp,
@@ -21,12 +26,26 @@ from catc.j2735.uper import (
 def open_envelope(data: bytes) -> tuple[bytes, Unwrapped | None]:
     """(the MessageFrame, its IEEE 1609.2 envelope or None) of a frame as an OBU receives
     it: a WSMP WAVE Short Message (IEEE 1609.3) and an ``Ieee1609Dot2Data`` are removed
-    when present.  Raises :class:`catc.errors.DecodeError`."""
+    when present, and the WSM's PSID is kept in the envelope (``wsmp_psid``) for the
+    verifier.  Raises :class:`catc.errors.DecodeError`, ``unsupported`` for a WSMP
+    version or a 1609.2 protocolVersion other than 3: a header of the right shape whose
+    version says that nothing after it can be read (the version field of a WSMP
+    N-header with TPID 0 or 1 after it; a version octet below 8 before a 1609.2 content
+    tag, where a UPER MessageFrame would have a messageId of 64-66 plus a multiple of 128,
+    none of them a J2735 message)."""
+    wsmp_psid = None
     if looks_like_wsmp(data):
-        data, _psid = unwrap_wsmp(data)
+        data, wsmp_psid = unwrap_wsmp(data)
+    elif len(data) >= 4 and data[0] < 8 and data[1] in (0, 1):
+        raise DecodeError("unsupported", f"WSMP version {data[0]}, not {WSMP_VERSION}")
     if looks_like_1609(data):
         u = unwrap(data)
+        if wsmp_psid is not None:
+            u = dataclasses.replace(u, wsmp_psid=wsmp_psid)
         return u.frame, u
+    if len(data) >= 2 and data[0] < 8 and 0x80 <= data[1] <= 0x84:
+        raise DecodeError("unsupported",
+                          f"1609.2 protocolVersion {data[0]}, not {PROTOCOL_VERSION}")
     return data, None
 
 

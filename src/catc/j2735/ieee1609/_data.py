@@ -89,6 +89,9 @@ class Unwrapped:
     ``SignedData`` (§6.3.4): ``tbs_data`` is the exact COER of its ``ToBeSignedData``;
     ``signer_digest`` is the HashedId8 of the signing certificate (the ``digest`` sent, or
     the HashedId8 of the first certificate sent); ``signature`` is r || s (64 octets).
+    ``signed_layers`` counts the ``SignedData`` layers around the frame (a BSM has one);
+    ``wsmp_psid`` is the PSID of the WAVE Short Message that carried the data, when it
+    came in one (set by :func:`catc.j2735.open_envelope`, not by :func:`unwrap`).
     """
 
     frame: bytes  # normally a UPER MessageFrame
@@ -104,6 +107,8 @@ class Unwrapped:
     signature_r_form: str | None = None
     expiry_time_us: int | None = None
     unsupported: str | None = None  # why the signature cannot be verified by catc, if so
+    signed_layers: int = 0
+    wsmp_psid: int | None = None
 
 
 def _skip_hashed_data(stream: io.BytesIO) -> None:
@@ -231,7 +236,7 @@ def unwrap(data: bytes) -> Unwrapped:
                 frame, "signed", psid, generation, hash_id=hash_id, tbs_data=tbs,
                 signer_kind=kind, signer_digest=digest, signer_certs=certs,
                 signature=signature, signature_r_form=r_form, expiry_time_us=expiry,
-                unsupported="; ".join(notes) or None,
+                unsupported="; ".join(notes) or None, signed_layers=len(layers),
             )
     assert inner is not None
     return inner

@@ -255,3 +255,14 @@ def test_a_replayed_leader_is_not_quarantined_and_its_fcw_still_fires(pki, tmp_p
     assert counters["verify_replay"] == counters["verify_rejected"] == summary["attack_frames"]
     assert a["attacks"]["replay"]["rejected"] == {"replay": summary["attack_frames"]}
     assert {r["verdict"] for r in rx if r["status"] == "rejected"} == {"replay"}
+
+
+def test_obu_signatures_flag_picks_the_encodings_it_accepts(pki):  # noqa: F811
+    """``obu run --signatures standard`` takes every form 1609.2 allows (real senders
+    send rSig compressed and high s); ``strict``, the default, only the canonical one."""
+    from obu.frames import verifier
+
+    base = dict(verify="enforce", trust=str(pki))
+    assert verifier(argparse.Namespace(**base, signatures="strict")).canonical_only
+    assert not verifier(argparse.Namespace(**base, signatures="standard")).canonical_only
+    assert verifier(argparse.Namespace(**base)).canonical_only  # an older config: strict

@@ -64,7 +64,8 @@ def verifier(args: argparse.Namespace) -> Any:
 
     roots, cas = trust_store(args.trust)
     try:
-        return Verifier(roots, certificates=cas)
+        return Verifier(roots, certificates=cas,
+                        canonical_only=getattr(args, "signatures", "strict") == "strict")
     except ValueError as err:
         raise ValueError(f"--trust {args.trust}: {err}") from None
 

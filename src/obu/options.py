@@ -17,7 +17,7 @@ DEFAULTS = {
     "predictor": "hgp", "capture": None, "overwrite": False, "duration": None, "idle_exit": None,
     "warnings": None, "collect_ms": 5.0, "can_interface": "virtual", "can_channel": None,
     "can_fd": False, "progress": True, "max_tracks": 1000, "verify": "off", "trust": None,
-    "mbd": False, "web": None, "host_id": None,
+    "mbd": False, "web": None, "host_id": None, "signatures": "strict",
 }
 
 
@@ -64,6 +64,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="IEEE 1609.2 verification of the RV frames: off (default), log "
                         "(verify and record the verdict, track every frame) or enforce "
                         "(drop what does not verify); needs --trust")
+    p.add_argument("--signatures", choices=("strict", "standard"),
+                   help="signature encodings --verify accepts: strict (default: rSig x-only "
+                        "and low s, the one form nobody can derive from another) or "
+                        "standard (every form IEEE 1609.2 allows: rSig as a point, high s, "
+                        "as real senders use; replays are caught either way)")
     p.add_argument("--trust", metavar="PATH",
                    help="trust store for --verify: a PKI directory (rve pki init: its root "
                         "is trusted, its AA known) or a root certificate .oer file")

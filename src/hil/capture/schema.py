@@ -76,6 +76,7 @@ __all__ = [
     "sent",
     "settings",
     "tick",
+    "track_columns",
     "track_rows",
     "truth",
 ]
@@ -284,6 +285,20 @@ def track_rows(snap: Any, host_sec_mark: int) -> list[dict[str, Any]]:
             "predicted_y": round(float(snap.pred_y[i]), 7),
             "predicted_zone": [bool(pz.ahead[i]), int(pz.lateral[i]), int(pz.direction[i])]})
     return rows
+
+
+def track_columns(snap: Any) -> dict[str, Any]:
+    """Every tracked RV of ``snap`` as columns (``obu.tracks.bin``, one block per tick,
+    :class:`hil.capture.tracks.TrackWriter`): the fields of :func:`track_rows`, the zones
+    split into ``ahead, lateral, direction`` and ``p_ahead, p_lateral, p_direction``.  The
+    file keeps what :func:`track_rows` rounds to: positions to 1e-7 m, the rest to 1e-3."""
+    z, pz = snap.zone, snap.predicted_zone
+    return {"id": snap.ids, "x": snap.x, "y": snap.y, "speed": snap.speed,
+            "heading": snap.heading, "source": snap.source, "age": snap.age,
+            "fresh": snap.fresh, "lane": snap.lane, "ahead": z.ahead, "lateral": z.lateral,
+            "direction": z.direction, "s": z.s, "d": z.d, "predicted_x": snap.pred_x,
+            "predicted_y": snap.pred_y, "p_ahead": pz.ahead, "p_lateral": pz.lateral,
+            "p_direction": pz.direction}
 
 
 def event(e: Any) -> dict[str, Any]:

@@ -2,8 +2,9 @@
 
 * :mod:`hil.capture.schema`: the files of a capture directory, a function that builds each
   record, and the key that joins the RVE's records with the OBU's.
-* :mod:`hil.capture.writers`: append-only writers (JSON lines, pcapng, CAN logs), flushed
-  once per tick, so a killed daemon keeps all but its last tick.
+* :mod:`hil.capture.writers`: append-only writers (JSON lines, plain or in one gzip
+  stream, pcapng, CAN logs), flushed once per tick, so a killed daemon keeps all but its
+  last tick.
 * :mod:`hil.capture.tracks`: ``obu.tracks.bin``, every tracked RV at every tick as what
   changed since the tick before.
 * :mod:`hil.capture.reader`: a capture directory read back and checked.
@@ -22,6 +23,7 @@ from hil.capture.reader import (
 from hil.capture.tracks import TrackBlock, TrackWriter, block_rows, iter_blocks, read_columns
 from hil.capture.writers import (
     CanLogs,
+    GzipJsonLines,
     JsonLines,
     PcapngWriter,
     can_log,
@@ -31,7 +33,7 @@ from hil.capture.writers import (
     versions,
 )
 
-__all__ = ["CanLogs", "Capture", "CaptureError", "JsonLines", "PcapngWriter", "TrackBlock",
+__all__ = ["CanLogs", "Capture", "CaptureError", "GzipJsonLines", "JsonLines", "PcapngWriter", "TrackBlock",
            "TrackWriter", "block_rows", "can_log", "claim", "clock_offset", "ethernet",
            "iter_blocks", "read_capture", "read_columns", "read_json", "read_lines", "schema",
            "truth_in_frame", "udp_packet", "versions"]

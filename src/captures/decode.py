@@ -12,6 +12,7 @@ from catc.errors import DecodeError
 from catc.j2735 import decode_bsm, decode_frame
 from catc.j2735.sniff import as_text, extract_frames
 from catc.records import bsm_to_record
+from hil.capture import gunzip
 
 from .canlog import can_log_kind, read_can_log
 
@@ -24,7 +25,8 @@ FILE may hold raw UPER (a MessageFrame or a bare BasicSafetyMessage), hex text
 (one frame per line), IEEE 1609.2-wrapped frames, an ODE/WYDOT OBU .bin log,
 ODE JSON/XML records that carry the frame in hex, a pcapng capture of UDP, or a
 CAN capture (candump -L log or Vector ASC: the ISO-TP transfers on every 11-bit
-identifier are reassembled).  The kind is detected from the content.  A frame
+identifier are reassembled), or the OBU's obu.rx.jsonl.gz (gzip is read through).
+The kind is detected from the content.  A frame
 that does not decode, or a broken ISO-TP transfer, is reported on stderr with its
 reason and skipped; the exit status is then 1."""
 
@@ -69,6 +71,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"captures decode: cannot read {args.file}: {err.strerror}", file=sys.stderr)
         return 2
     failures = 0
+    if data[:2] == b"\x1f\x8b":  # gzip (the OBU's obu.rx.jsonl.gz)
+        data = gunzip(data)[0]
     try:
         text = as_text(data[:4096])
         kind = can_log_kind(text) if text is not None else None

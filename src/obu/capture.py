@@ -1,9 +1,11 @@
 """The OBU's capture directory (``obu run --capture DIR``): its files and records, all as
 :mod:`hil.capture.schema` names and builds them.
 
-The JSON-lines files are append-only and flushed at every tick, so ``kill -9`` loses at
-most the last tick; the config and the counters are rewritten whole (through a temporary
-file and a rename, so a reader never sees half of one).
+The per-tick files (``obu.rx.jsonl.gz``, ``obu.ticks.jsonl``, ``obu.tracks.bin``,
+``obu.events.jsonl``, ``obu.mbr.jsonl``) are append-only and flushed at every tick, so
+``kill -9`` loses at most the last tick; the config and the counters are rewritten whole
+(through a temporary file and a rename, so a reader never sees half of one).
+
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from typing import Any
 
 from catc.bsm import BSM
 from catc.cam import MapSnapshot
-from hil.capture import JsonLines, claim, schema, versions
+from hil.capture import GzipJsonLines, JsonLines, TrackWriter, claim, schema, versions
 
 __all__ = ["ObuCapture", "Received"]
 
@@ -36,14 +38,22 @@ class ObuCapture:
         claim(directory, "obu", getattr(args, "overwrite", False))
         self.run_id = schema.new_run_id()
         self.started = time.time()
-        self.rx = JsonLines(directory / schema.OBU_RX)
-        self.ticks = JsonLines(directory / schema.OBU_TICKS)
-        self.tracks = JsonLines(directory / schema.OBU_TRACKS)
-        self.events = JsonLines(directory / schema.OBU_EVENTS)
-        self.mbr = JsonLines(directory / schema.OBU_MBR) if args.mbd else None
+        self.mbd = bool(args.mbd)
+        self._open(0)
         self.settings = schema.settings(args)
         self.origin_written = False
         self.write_config(None)
+
+    def _open(self, k: int) -> None:
+        """The per-tick files of segment ``k`` (0: the names of the schema)."""
+        def path(name: str) -> Path:
+            return self.dir / schema.segment_name(name, k)
+
+        self.rx = GzipJsonLines(path(schema.OBU_RX))
+        self.ticks = JsonLines(path(schema.OBU_TICKS))
+        self.tracks = TrackWriter(path(schema.OBU_TRACKS))
+        self.events = JsonLines(path(schema.OBU_EVENTS))
+        self.mbr = JsonLines(path(schema.OBU_MBR)) if self.mbd else None
 
     def _replace(self, name: str, text: str) -> None:
         tmp = self.dir / f"{name}.tmp"
@@ -99,11 +109,10 @@ class ObuCapture:
         for r in received:
             self.message(r, "ok", tick=snap.t, decided_unix=decided)
         self.ticks.write(schema.tick(snap, host_sec_mark, step_ms, decided))
-        for row in schema.track_rows(snap, host_sec_mark):
-            self.tracks.write(row)
+        self.tracks.write(snap.t, host_sec_mark, schema.track_columns(snap))
         self.flush()
 
-    def _files(self) -> list[JsonLines]:
+    def _files(self) -> list[Any]:
         return [f for f in (self.rx, self.ticks, self.tracks, self.events, self.mbr)
                 if f is not None]
 

@@ -7,17 +7,25 @@
   last tick.
 * :mod:`hil.capture.tracks`: ``obu.tracks.bin``, every tracked RV at every tick as what
   changed since the tick before.
-* :mod:`hil.capture.reader`: a capture directory read back and checked.
+* :mod:`hil.capture.reader`: a capture directory read back as streams, checked, up to a
+  torn tail.
 """
 
 from hil.capture import schema
 from hil.capture.reader import (
     Capture,
     CaptureError,
+    Torn,
     clock_offset,
+    gunzip,
+    iter_lines,
     read_capture,
     read_json,
     read_lines,
+    read_rx,
+    read_tracks,
+    segment_files,
+    torn_line,
     truth_in_frame,
 )
 from hil.capture.tracks import TrackBlock, TrackWriter, block_rows, iter_blocks, read_columns
@@ -33,7 +41,9 @@ from hil.capture.writers import (
     versions,
 )
 
-__all__ = ["CanLogs", "Capture", "CaptureError", "GzipJsonLines", "JsonLines", "PcapngWriter", "TrackBlock",
-           "TrackWriter", "block_rows", "can_log", "claim", "clock_offset", "ethernet",
-           "iter_blocks", "read_capture", "read_columns", "read_json", "read_lines", "schema",
-           "truth_in_frame", "udp_packet", "versions"]
+__all__ = ["CanLogs", "Capture", "CaptureError", "GzipJsonLines", "JsonLines", "PcapngWriter",
+           "Torn", "TrackBlock", "TrackWriter", "block_rows", "can_log", "claim",
+           "clock_offset", "ethernet", "gunzip", "iter_blocks", "iter_lines", "read_capture",
+           "read_columns", "read_json", "read_lines", "read_rx", "read_tracks", "schema",
+           "segment_files", "torn_line", "truth_in_frame", "udp_packet", "versions"]
+

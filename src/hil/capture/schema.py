@@ -3,8 +3,14 @@
 The RVE and the OBU may share one capture directory; each writes only its own files.  Every
 record that goes into a file is built by one function here, so a field is added in one
 place, and the readers (:mod:`hil.capture.reader`, ``captures score``, ``view``, ``plot``)
-read what these build.  JSON-lines files are append-only and flushed once per tick
-(:class:`hil.capture.writers.JsonLines`); a killed daemon loses at most its last line.
+read what these build.  Every file is append-only and flushed once per tick
+(:mod:`hil.capture.writers`); a killed daemon loses at most its last tick, and the reader
+reads a file up to a torn tail and says where it was.  People read the JSON lines (ticks,
+events, end records) by hand; the two files that grow with the number of RVs and frames
+are compact: ``obu.rx.jsonl.gz`` is JSON lines in one gzip stream flushed per tick
+(``zcat`` reads it), ``obu.tracks.bin`` is binary, each tick's rows as residuals against
+the same RVs' rows of the tick before (:mod:`hil.capture.tracks`; ``captures tracks DIR``
+prints them as JSON lines).
 
 =======================  ======  ==============================================================
 file                     writer  one record per ...
@@ -22,12 +28,19 @@ file                     writer  one record per ...
                                  :func:`obu_config`)
 ``obu.end.json``         OBU     run: how it ended (:func:`end`); none when it was killed
 ``obu.counters.json``    OBU     run: every counter (rewritten every second and at the end)
-``obu.rx.jsonl``         OBU     frame received, with what became of it (:func:`received`)
+``obu.rx.jsonl.gz``      OBU     frame received, with what became of it (:func:`received`)
 ``obu.ticks.jsonl``      OBU     tick: host state, step time, warnings (:func:`tick`)
-``obu.tracks.jsonl``     OBU     tracked RV at every tick (:func:`track_rows`)
+``obu.tracks.bin``       OBU     tracked RV at every tick (:func:`track_columns`, read back as
+                                 :func:`track_rows` made them)
 ``obu.events.jsonl``     OBU     warning start or end (:func:`event`)
 ``obu.mbr.jsonl``        OBU     misbehavior detection, with ``obu run --mbd`` (:func:`report`)
 =======================  ======  ==============================================================
+
+Segments.  With ``obu run --capture-max-mb N`` the OBU's per-tick files (:data:`SEGMENTED`)
+are written in segments, a time slice each: segment 0 under the names above, segment k
+under :func:`segment_name` (``obu.ticks.000003.jsonl``); when the OBU's files pass N MB the
+oldest segment but the first is deleted (:mod:`obu.capture`).  The reader reads the
+segments in order and says which are missing.
 
 The join key.  A message is named on both sides by its sender's TemporaryID (8 hex digits),
 its msgCnt and its secMark (:func:`message_key`).  The RVE's schedule gives the sequence
@@ -46,6 +59,7 @@ from catc.bsm import msg_cnt, sec_mark
 
 __all__ = [
     "ENDINGS",
+    "LEGACY",
     "OBU_CONFIG",
     "OBU_COUNTERS",
     "OBU_END",
@@ -60,6 +74,7 @@ __all__ = [
     "RVE_PCAPNG",
     "RVE_SCHEDULE",
     "RVE_TRUTH",
+    "SEGMENTED",
     "end",
     "event",
     "failed",
@@ -73,6 +88,7 @@ __all__ = [
     "rve_config",
     "scheduled",
     "scheduled_key",
+    "segment_name",
     "sent",
     "settings",
     "tick",
@@ -91,11 +107,25 @@ RVE_END = "rve.end.json"
 OBU_CONFIG = "obu.config.json"
 OBU_END = "obu.end.json"
 OBU_COUNTERS = "obu.counters.json"
-OBU_RX = "obu.rx.jsonl"
+OBU_RX = "obu.rx.jsonl.gz"
 OBU_TICKS = "obu.ticks.jsonl"
-OBU_TRACKS = "obu.tracks.jsonl"
+OBU_TRACKS = "obu.tracks.bin"
 OBU_EVENTS = "obu.events.jsonl"
 OBU_MBR = "obu.mbr.jsonl"
+#: The OBU's files written per tick, in segments under ``--capture-max-mb``.
+SEGMENTED = (OBU_RX, OBU_TICKS, OBU_TRACKS, OBU_EVENTS, OBU_MBR)
+#: What captures written before 2026-11-28 called two of them (the reader reads both).
+LEGACY = {OBU_RX: "obu.rx.jsonl", OBU_TRACKS: "obu.tracks.jsonl"}
+
+
+def segment_name(name: str, k: int) -> str:
+    """The file of segment ``k`` of ``name`` (one of :data:`SEGMENTED`): the name itself
+    for segment 0, else the segment number before the extension
+    (``obu.rx.000002.jsonl.gz``)."""
+    if k == 0:
+        return name
+    daemon, stream, ext = name.split(".", 2)
+    return f"{daemon}.{stream}.{k:06d}.{ext}"
 
 MessageKey = tuple[str, int, int]
 

@@ -2,7 +2,8 @@
 random bytes, oversize datagrams and bit-flipped, truncated copies of the host's and the
 RVs' real frames while ``rve run`` replays the built-in scenario; the OBU's warnings, FCW
 accuracy and per-RV PTE95 equal those of the same run without the flood, and its counters
-account for every datagram."""
+account for every datagram; the score's received and latency count the run's own frames.
+"""
 
 from __future__ import annotations
 
@@ -64,6 +65,14 @@ def test_a_flood_of_garbage_changes_nothing_and_is_accounted_for(tmp_path):
     assert flooded["pte95_per_rv"] == clean["pte95_per_rv"]
     assert flooded["pte95_m"] == clean["pte95_m"]
     assert flooded["phantom"]["tracks"] == 0 and flooded["phantom"]["warnings"] == 0
+    # the score counts the run (issue 27: it said "received 18,860 > sent 11,075", latency
+    # p50 1,332 ms): the RVE's own messages, each once; the flood's decodable copies apart
+    assert flooded["received"] == clean["received"] <= flooded["sent"] == clean["sent"]
+    f = flooded["frames"]
+    assert f["duplicate"] + f["unmatched"] + f["phantom"] > 100, f
+    assert sum(f["garbage"].values()) == sum(flooded["decode_errors"].values()) > 1000
+    p50, clean_p50 = flooded["latency_ms"]["p50"], clean["latency_ms"]["p50"]
+    assert p50 <= max(3 * clean_p50, clean_p50 + 30.0), (p50, clean_p50)
     # every datagram is accounted for: at the socket, then by the decoder, then the CAM
     assert c["transport_rv"] + c["transport_oversized"] == sent["datagrams"] + c["rve_sent"]
     assert c["transport_oversized"] == sent["sent"]["oversize"]

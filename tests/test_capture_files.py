@@ -462,3 +462,18 @@ def test_obu_capture_files_per_tick_are_flushed_and_whole(tmp_path):
         assert len(list(iter_blocks(tmp_path / schema.OBU_TRACKS))) == \
             sum(1 for s in snaps[:k + 1] if len(s))
     obu.close()
+
+
+def test_captures_tracks_prints_the_json_lines_of_before(tmp_path):
+    make_capture(tmp_path / "json", 4.0, legacy=True)
+    make_capture(tmp_path / "compact", 4.0)
+    out = [subprocess.run([PY, "-m", "captures.cli", "tracks", str(tmp_path / d)],
+                          capture_output=True, text=True, timeout=60) for d in ("json", "compact")]
+    assert out[0].returncode == out[1].returncode == 0, out[1].stderr
+    assert out[0].stdout == (tmp_path / "json" / "obu.tracks.jsonl").read_text()
+    rows = [[json.loads(line) for line in o.stdout.splitlines()] for o in out]
+    assert rows[1] == rows[0] and len(rows[0]) > 500  # -0.0 of the JSON reads 0.0 now
+    csv = subprocess.run([PY, "-m", "captures.cli", "tracks", str(tmp_path / "compact"), "--csv",
+                          "--id", json.loads(out[1].stdout.splitlines()[0])["id"]],
+                         capture_output=True, text=True, timeout=60).stdout.splitlines()
+    assert csv[0].startswith("t,sec_mark,id,x,y,") and len(csv) > 30

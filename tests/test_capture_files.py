@@ -58,7 +58,7 @@ def make_capture(directory: Path, duration: float = 3.0, *, extra_rx=(), legacy:
     """A capture directory of the built-in scenario's first ``duration`` s (every message
     delivered, decided 10 ms after it was sent), the OBU's files written by
     :class:`obu.capture.ObuCapture` (``legacy``: as JSON lines under the names of before
-    2026-11-28); ``extra_rx`` are more ``obu.rx`` records (frames of a flood).  Returns
+    2026-11-27); ``extra_rx`` are more ``obu.rx`` records (frames of a flood).  Returns
     what it wrote: ``sent`` (the RVE's RV messages), ``snaps``."""
     directory.mkdir(parents=True, exist_ok=True)
     table, the_plan, cam, snaps = _snapshots(duration)

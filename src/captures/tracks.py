@@ -1,7 +1,7 @@
 """``captures tracks DIR``: the OBU's tracks (``obu.tracks.bin``) as people read them.
 
 The tracks are written compactly (:mod:`hil.capture.tracks`); this prints them as the JSON
-lines the OBU wrote before 2026-11-28 (one object per tracked RV and tick, the fields of
+lines the OBU wrote before 2026-11-27 (one object per tracked RV and tick, the fields of
 :func:`hil.capture.schema.track_rows`), or as CSV, segments in order.  A torn tail (the
 OBU killed mid-write) ends the output, and one stderr line says where it was.
 """
@@ -49,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
     out = sys.stdout
     try:
         for _, path in files:
-            if path.suffix == ".jsonl":  # a capture of before 2026-11-28: already JSON lines
+            if path.suffix == ".jsonl":  # a capture of before 2026-11-27: already JSON lines
                 rows = (json.loads(line) for line in path.open() if line.strip())
             else:
                 rows = (r for b in iter_blocks(path, lambda *t: torn.append(t))

@@ -10,11 +10,12 @@ The cap (``obu run --capture-max-mb N``).  The per-tick files are then written i
 segments of N/10 MB, a time slice each: after a tick that took the current segment past
 N/10 MB every file starts its next segment (:func:`hil.capture.schema.segment_name`), and
 while the OBU's files take more than 0.9 N MB (room for the new segment) the oldest
-segment is deleted, but never the first (the start of the run: its ENU origin, its first tick, which the score's clocks
-join on) nor the current one.  The directory thus holds the run's start and its latest
-minutes, within N MB and one tick's records; ``captures score`` reads what is left, names
-the deleted segments, and counts their ticks as missing (an incomplete run).  The counters
-and the end record say how many segments were written and deleted.
+segment is deleted, but never the first (the start of the run: its ENU origin, its first
+tick, which the score's clocks join on) nor the current one.  The directory thus holds
+the run's start and its latest minutes, within N MB and one tick's records; ``captures
+score`` reads what is left, names the deleted segments, and counts their ticks as missing
+(an incomplete run).  The counters and the end record say how many segments were written
+and deleted.
 """
 
 from __future__ import annotations

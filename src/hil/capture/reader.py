@@ -15,7 +15,7 @@ wrong in one line.
 
 Segments (``obu run --capture-max-mb``): the OBU's per-tick files are read segment by
 segment in order (:func:`segment_files`); :meth:`Capture.missing_segments` names the ones
-deleted under the cap.  Captures written before 2026-11-28 (``obu.rx.jsonl``,
+deleted under the cap.  Captures written before 2026-11-27 (``obu.rx.jsonl``,
 ``obu.tracks.jsonl``: :data:`hil.capture.schema.LEGACY`) are read as well.
 """
 
@@ -208,7 +208,7 @@ def read_json(path: Path) -> dict[str, Any]:
 def segment_files(directory: Path, name: str) -> list[tuple[int, Path]]:
     """The segments of the OBU file ``name`` (:data:`hil.capture.schema.SEGMENTED`) in
     ``directory``, by number: ``[(0, obu.ticks.jsonl), (3, obu.ticks.000003.jsonl)...]``;
-    a capture of before 2026-11-28 gives its file of the old name."""
+    a capture of before 2026-11-27 gives its file of the old name."""
     directory = Path(directory)
     daemon, stream, ext = name.split(".", 2)
     pattern = re.compile(rf"{re.escape(daemon)}\.{re.escape(stream)}\.(\d{{6}})\."
@@ -241,7 +241,7 @@ def read_tracks(directory: Path) -> list[dict[str, Any]]:
 
 
 def _block_of(rows: list[dict]) -> TrackBlock:
-    """JSON track rows of one tick (a capture of before 2026-11-28) as a block."""
+    """JSON track rows of one tick (a capture of before 2026-11-27) as a block."""
     cols: dict[str, np.ndarray] = {
         "id": np.array([int(r["id"], 16) for r in rows], dtype=np.uint32),
         "source": np.array([r["source"] for r in rows], dtype=object)}
@@ -307,7 +307,7 @@ class Capture:
         if not files:
             raise _missing(self.directory / OBU_TRACKS)
         for _, path in files:
-            if path.suffix == ".jsonl":  # before 2026-11-28
+            if path.suffix == ".jsonl":  # before 2026-11-27
                 rows: list[dict] = []
                 for r in iter_lines(path, self._torn):
                     if rows and r["t"] != rows[0]["t"]:

@@ -114,7 +114,7 @@ OBU_EVENTS = "obu.events.jsonl"
 OBU_MBR = "obu.mbr.jsonl"
 #: The OBU's files written per tick, in segments under ``--capture-max-mb``.
 SEGMENTED = (OBU_RX, OBU_TICKS, OBU_TRACKS, OBU_EVENTS, OBU_MBR)
-#: What captures written before 2026-11-28 called two of them (the reader reads both).
+#: What captures written before 2026-11-27 called two of them (the reader reads both).
 LEGACY = {OBU_RX: "obu.rx.jsonl", OBU_TRACKS: "obu.tracks.jsonl"}
 
 

@@ -26,8 +26,9 @@ A block depends on the one before, so the file is read from its start (a segment
 capped capture starts afresh); a torn last block (a kill, a full disk) ends the reading
 there and is reported with its byte offset.  Read back, the values are those the JSON lines
 held (``k / 1e7``, ``k / 1e3``: the same decimal, to the last bit but in a tie of
-rounding; a ``-0.0`` reads ``0.0``), so every figure of ``captures score`` is unchanged.  :func:`read_columns` gives
-a file as numpy columns (``pandas.DataFrame(read_columns(path))`` is a table of it).
+rounding; a ``-0.0`` reads ``0.0``), so every figure of ``captures score`` is unchanged.
+:func:`read_columns` gives a file as numpy columns (``pandas.DataFrame(read_columns(path))``
+is a table of it).
 """
 
 from __future__ import annotations

@@ -138,7 +138,7 @@ def capture_bytes(cap: Path) -> dict[str, int]:
             stem, _, rest = name.partition(".")
             parts = rest.split(".")
             if len(parts) >= 3 and parts[1].isdigit():  # obu.tracks.000001.bin
-                name = f"{stem}.{parts[0]}.{parts[-1]}"
+                name = ".".join([stem, parts[0], *parts[2:]])
             out[name] = out.get(name, 0) + p.stat().st_size
     return out
 
@@ -296,6 +296,10 @@ def main() -> int:
         print(f"{key:<22}" + "".join(f"{(r.get('score') or {}).get(key)!s:>10}"
                                      for r in rows))
     for r in rows:
+        c = (r.get("score") or {}).get("capture")
+        if c and (c["segments_deleted"] or c["torn"]):
+            print(f"{r['run']}: {c['segments']} segments kept, "
+                  f"{len(c['segments_deleted'])} deleted by the cap; torn: {c['torn']}")
         if r["storm"]:
             print(f"storm: {r['storm']}; OBU {r['obu']}")
     if "growth_ratio" in result:

@@ -20,7 +20,8 @@ Text input is one of:
   26-octet header, then 1609.2, then the frame);
 - ODE JSON (one object, an array, or JSON lines): the hex in ``payload.data.bytes``,
   else in ``metadata.asn1``.  Records with decoded values only give no frames.  The
-  OBU's own ``obu.rx.jsonl`` (records with ``rx_unix``) gives the frame in ``hex``;
+  OBU's own ``obu.rx.jsonl.gz`` (records with ``rx_unix``; ``captures decode`` unzips it)
+  gives the frame in ``hex``;
 - ODE XML (``OdeAsn1Data``): the hex in ``<bytes>`` elements, else in ``<asn1>``.
 
 Each frame comes back as an :class:`Extracted` whose ``container`` names the file's

@@ -146,7 +146,7 @@ def scheduled_key(record: dict) -> MessageKey:
 
 
 def received_key(record: dict) -> MessageKey:
-    """:func:`message_key` of an ``obu.rx.jsonl`` record (the decoded msgCnt and secMark;
+    """:func:`message_key` of an ``obu.rx.jsonl.gz`` record (the decoded msgCnt and secMark;
     None where the frame did not decode)."""
     return (record.get("id"), record.get("msgCnt"), record.get("sec_mark"))
 
@@ -256,7 +256,7 @@ def received(rx_unix: float, channel: str, data: bytes, status: str, *,
              sender: tuple[int, int, int | None] | None = None, verdict: str | None = None,
              tick: float | None = None, decided_unix: float | None = None
              ) -> dict[str, Any]:
-    """One received frame (``obu.rx.jsonl``) and what became of it: ``status`` is ``ok``
+    """One received frame (``obu.rx.jsonl.gz``) and what became of it: ``status`` is ``ok``
     (stepped at ``tick``, decided at ``decided_unix``), ``unticked`` (received after the
     last host frame), ``rejected`` (failed IEEE 1609.2 verification under enforce),
     ``quarantined`` (its sender is in misbehavior quarantine) or the decode error's reason.
@@ -295,7 +295,7 @@ def tick(snap: Any, host_sec_mark: int, step_ms: float, decided_unix: float
 
 
 def track_rows(snap: Any, host_sec_mark: int) -> list[dict[str, Any]]:
-    """Every tracked RV of ``snap`` (``obu.tracks.jsonl``, and the live view's rows): the
+    """Every tracked RV of ``snap`` as rows (``obu.tracks.bin`` read back, the live view): the
     estimate (ENU m, m/s, degrees), where it came from (``source``: the predictor or
     ``bsm``), its age and freshness, lane, zone now and at the prediction horizon
     (``[ahead, lateral code, direction code]``, :mod:`catc.classify`), and the path-frame

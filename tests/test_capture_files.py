@@ -428,6 +428,39 @@ def test_received_counts_only_the_rves_own_messages(tmp_path, legacy):
         assert s[key] == clean[key], key
 
 
+def test_a_flood_at_the_rv_port_leaves_received_and_latency_to_the_real_frames(tmp_path):
+    """A real run under `rve flood` at the RV port (bit-flipped and cut copies of the
+    run's frames 1 s of data after them, random octets), at a pace the OBU keeps up with:
+    received is the clean run's, <= sent, the copies are counted apart, and the latency
+    p50 is the clean run's, not the copies' (the score before took the last copy's)."""
+    from hil.transport.udp import free_ports
+    from tests.test_obu import finish, rve, score, start_obu
+
+    run = ("--per", "20", "--seed", "5", "--speed", "2", "--duration", "14")
+    out = {}
+    for name in ("clean", "flood"):
+        cap = tmp_path / name
+        ports = free_ports()
+        obu = start_obu(cap, ports, "--predictor", "ca")
+        flooder = None
+        if name == "flood":
+            flooder = subprocess.Popen(
+                [PY, "-m", "rve.cli", "flood", "--to", f"127.0.0.1:{ports[0]}", "--rate",
+                 "1000", "--duration", "7.5", "--per", "20", "--seed", "5", "--speed", "2",
+                 "--lag", "1", "--mix", "copy=3,random=1"], stdout=subprocess.PIPE, text=True)
+        rve(ports, *run, "--capture", str(cap))
+        if flooder is not None:
+            assert flooder.wait(60) == 0
+        finish(obu)
+        out[name] = score(cap)
+    clean, flood = out["clean"], out["flood"]
+    assert flood["received"] == clean["received"] == clean["sent"] == flood["sent"] > 0
+    f = flood["frames"]
+    assert f["duplicate"] > 100 and f["duplicate"] + f["unmatched"] + f["phantom"] > 200, f
+    p50, clean_p50 = flood["latency_ms"]["p50"], clean["latency_ms"]["p50"]
+    assert p50 <= max(3 * clean_p50, clean_p50 + 30.0), (p50, clean_p50)
+
+
 def test_the_score_of_compact_files_is_the_score_of_the_json_lines(tmp_path):
     from captures.score import score
 

@@ -30,6 +30,7 @@ from catc.cam import CamConfig, ContextAwareMap
 from catc.channel import ChannelConfig
 from catc.j2735 import encode_frame
 from catc.replay import plan, simulate
+from hil.capture import read_rx, read_tracks
 from hil.datasets import load_table
 from hil.transport.udp import free_ports, wait_bound
 from obu import run as obu_run
@@ -166,8 +167,7 @@ def test_live_equals_offline(tmp_path):
         for i in range(len(snap)):
             offline[(round(snap.t, 3), f"{int(snap.ids[i]):08X}")] = (snap.x[i], snap.y[i])
     live = {}
-    for line in (tmp_path / "obu.tracks.jsonl").open():
-        r = json.loads(line)
+    for r in read_tracks(tmp_path):  # obu.tracks.bin, as the JSON rows of before
         live[(round(r["t"], 3), r["id"])] = (r["x"], r["y"])
     assert live.keys() == offline.keys()
     err = max(float(np.hypot(live[k][0] - offline[k][0], live[k][1] - offline[k][1]))
@@ -260,7 +260,7 @@ def test_a_tick_takes_every_frame_received_before_its_host_frame(tmp_path, monke
     with contextlib.redirect_stdout(open(tmp_path / "warnings.jsonl", "w")):
         counters = asyncio.run(main())
     assert counters["ticks"] == 1 and counters["frames_rv"] == 10
-    rx = [json.loads(line) for line in (tmp_path / "obu.rx.jsonl").open()]
+    rx = read_rx(tmp_path)
     assert [r["status"] for r in rx if r["channel"] == "rv"] == ["ok"] * 10
 
 
@@ -432,7 +432,7 @@ def test_obu_sigterm_flushes_and_kill_9_keeps_all_but_the_last_tick(tmp_path):
             if obu.poll() is None:
                 obu.kill()
         ticks = [json.loads(line) for line in ticks_file.open()]
-        tracks = [json.loads(line) for line in (cap / "obu.tracks.jsonl").open()]
+        tracks = read_tracks(cap)
         assert len(ticks) > 10
         # every tick but possibly the last has all its track rows
         per_tick = {t["t"]: t["tracked"] for t in ticks[:-1]}
@@ -533,8 +533,8 @@ def test_captures_decode_reads_the_obus_rx_capture(tmp_path):
     obu = start_obu(tmp_path, ports, "--predictor", "ca")
     rve(ports, "--asap", "--duration", "2", "--ieee1609", "--capture", str(tmp_path))
     finish(obu)
-    rx = [json.loads(line) for line in (tmp_path / "obu.rx.jsonl").open()]
-    out = subprocess.run([PY, "-m", "captures.cli", "decode", str(tmp_path / "obu.rx.jsonl")],
+    rx = read_rx(tmp_path)
+    out = subprocess.run([PY, "-m", "captures.cli", "decode", str(tmp_path / "obu.rx.jsonl.gz")],
                          capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     decoded = [json.loads(line) for line in out.stdout.splitlines()]

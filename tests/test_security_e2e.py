@@ -30,6 +30,7 @@ import pytest
 from catc.j2735 import encode_frame
 from catc.j2735.sniff import extract_frames
 from catc.security import load_private_pem, sign_bsm, unix_to_time64
+from hil.capture import read_rx
 from hil.transport.udp import free_ports
 from tests.test_obu import PY, finish, rve, score, start_obu
 
@@ -135,7 +136,7 @@ def test_frames_that_do_not_verify_are_counted_by_reason(pki, tmp_path, mode):
             ("verify_rejected", "verify_failed")} == want
     total = sum(want.values())
     assert c["verify_rejected" if mode == "enforce" else "verify_failed"] == total
-    rx = [json.loads(line) for line in (tmp_path / "obu.rx.jsonl").open()]
+    rx = read_rx(tmp_path)
     if mode == "enforce":
         assert [r["status"] for r in rx] == ["rejected"] * total
         assert sorted(r["verdict"] for r in rx) == sorted(
@@ -179,7 +180,7 @@ def test_openssl_verifies_the_rves_signatures_on_the_wire(pki, tmp_path):
     certs = {p.read_bytes(): p for p in pki.glob("pseudonym-*.oer")}
     digests = {hashlib.sha256(c).digest()[-8:]: c for c in certs}
     captured = extract_frames((tmp_path / "rve.frames.pcapng").read_bytes())
-    wire = [json.loads(line) for line in (tmp_path / "obu.rx.jsonl").open()]
+    wire = read_rx(tmp_path)
     signed = [bytes.fromhex(r["hex"]) for r in wire]  # the RV frames as the OBU got them
     # (the OBU records a frame at the tick that takes it: the last few may have none)
     assert 0 < len(signed) <= sum(x.meta.get("security") == "signed" for x in captured)

@@ -22,6 +22,7 @@ from captures import (
     report,
     score,
     sweep,
+    tracks,
     train_bank,
     train_nn,
     view,
@@ -39,6 +40,7 @@ Capture-and-score post analysis for the V2X testbench.
   report       the paper's experiments on real data as one HTML/Markdown report
   score        PTE, FCW accuracy and counts of an `rve run` + `obu run` capture
   sweep        PER x rate x predictor x dataset: the paper's tables, on real data
+  tracks       the OBU's compact tracks (obu.tracks.bin) as JSON lines or CSV
   train-bank   train the HGP kernel bank on real trips (Algorithm 1)
   train-nn     train the neural baselines (AE, LSTM; direct and indirect) on real trips
   view         the OBU live view's page over a finished capture (play, slider, warnings)"""
@@ -53,6 +55,7 @@ def main(argv: list[str] | None = None) -> int:
     report.register(sub)
     score.register(sub)
     sweep.register(sub)
+    tracks.register(sub)
     train_bank.register(sub)
     train_nn.register(sub)
     view.register(sub)

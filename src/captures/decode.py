@@ -12,6 +12,7 @@ from catc.errors import DecodeError
 from catc.j2735 import decode_bsm, decode_frame
 from catc.j2735.sniff import as_text, extract_frames
 from catc.records import bsm_to_record
+from hil.capture import gunzip
 
 from .canlog import can_log_kind, read_can_log
 
@@ -24,9 +25,13 @@ FILE may hold raw UPER (a MessageFrame or a bare BasicSafetyMessage), hex text
 (one frame per line), IEEE 1609.2-wrapped frames, an ODE/WYDOT OBU .bin log,
 ODE JSON/XML records that carry the frame in hex, a pcapng capture of UDP, or a
 CAN capture (candump -L log or Vector ASC: the ISO-TP transfers on every 11-bit
-identifier are reassembled).  The kind is detected from the content.  A frame
-that does not decode, or a broken ISO-TP transfer, is reported on stderr with its
-reason and skipped; the exit status is then 1."""
+identifier are reassembled), or the OBU's obu.rx.jsonl.gz (gzip is read through).  The
+kind is detected from the content.  A frame that does not decode, or a broken ISO-TP
+transfer, is reported on stderr with its reason and skipped; the exit status is then 1.
+A file that ends in a torn tail (its writer was killed, or the disk filled: a pcapng
+block, a JSON line or a gzip stream cut off) gives every frame before it, and one line
+on stderr says where the whole part ends (file and byte offset); the exit status is
+then 1 too."""
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -69,6 +74,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"captures decode: cannot read {args.file}: {err.strerror}", file=sys.stderr)
         return 2
     failures = 0
+    torn: list[tuple[int, str]] = []
+    gz_cut = None
+    if data[:2] == b"\x1f\x8b":  # gzip (the OBU's obu.rx.jsonl.gz)
+        data, gz_cut = gunzip(data)
     try:
         text = as_text(data[:4096])
         kind = can_log_kind(text) if text is not None else None
@@ -80,10 +89,17 @@ def run(args: argparse.Namespace) -> int:
                 print(f"captures decode: {args.file}: {n} broken ISO-TP transfer(s): {reason}",
                       file=sys.stderr)
         else:
-            items = extract_frames(data)
+            items = extract_frames(data, torn)
     except DecodeError as err:
         print(f"captures decode: {args.file}: {err}", file=sys.stderr)
         return 2
+    if gz_cut is not None:  # offsets of the compressed file, not of its content
+        torn = [gz_cut]
+    if torn:
+        failures += 1
+        offset, why = torn[0]
+        print(f"captures decode: {args.file}: torn at byte {offset} ({why}; killed, or the "
+              f"disk full?): decoded the {len(items)} frames before it", file=sys.stderr)
     out = sys.stdout
     for index, item in enumerate(items):
         try:

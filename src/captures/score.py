@@ -13,14 +13,30 @@
   warning on the wrong vehicle is a false positive on it and a false negative on the
   right one (:mod:`catc.apps.verdict`).  Accuracy = (TP + TN) / (TP + TN + FP + FN);
   ``fcw_accuracy`` and ``fcw`` are FCW's, ``apps`` has every application's.
-* **Counts**: messages sent and dropped by the channel (``rve.schedule.jsonl``), received
-  and decoded by the OBU (``obu.rx.jsonl``), decode errors, and warning events by app.
+* **Counts that count the run**: messages sent and dropped by the channel
+  (``rve.schedule.jsonl``, the RV channel, an attack's own frames apart); ``received``:
+  those of them the OBU took (``obu.rx``, status ``ok``), each message once, joined by
+  its key (:func:`hil.capture.schema.message_key`), so received <= sent whatever else
+  the RV port heard.  The rest is counted apart (``frames``): later copies of a sent
+  message (``duplicate``), frames under a run's id that the RVE never sent as an RV
+  message (``unmatched``: a bit-flipped copy), frames of ids the RVE never sent
+  (``phantom``; ``phantom_received``), decode errors (``garbage``, by reason), rejected,
+  quarantined and unticked frames; and warning events by app.
 * **Security** (``obu run --verify log|enforce``): the IEEE 1609.2 verdict of every RV
   frame, ``ok`` or the reason it failed (``unsigned``, ``bad-signature``,
   ``unknown-signer``, ``expired``, ``wrong-psid``, ``stale``, ``chain``, ``unsupported``),
   and how many were rejected (dropped under ``enforce``).
 * **Latency** from the RVE's send to the OBU's decision (the end of the tick that used the
-  message), from the two processes' wall clocks on one machine.
+  message), from the two processes' wall clocks on one machine: of the received messages
+  only, each from its first copy (a copy replayed seconds later is no latency).
+* **The capture**: the OBU's segments (``obu run --capture-max-mb``) and those the cap
+  deleted (their ticks are missing: an incomplete run), and the files that end in a torn
+  tail, with the byte offset where their whole part ends (also one line on stderr).
+
+Memory: every file is read as a stream (:class:`hil.capture.Capture`); what is kept grows
+with the run's real RVs and messages (a float64 (t, x, y) per row of a real RV, the
+message keys and send times of the RVE's schedule, a tick time per tick), not with what
+else the OBU heard or tracked: a storm of spoofed ids adds one entry per id.
 """
 
 from __future__ import annotations
@@ -29,14 +45,16 @@ import argparse
 import functools
 import json
 import sys
-from collections import Counter, defaultdict
+from array import array
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
 
 from catc.apps.verdict import KEYS, Confusion, by_app
 from catc.bsm import MINUTE_MS, sec_mark
-from hil.capture import clock_offset, read_capture, truth_in_frame
+from catc.geo import EnuFrame
+from hil.capture import Capture, TrackBlock, clock_offset, read_capture, torn_line
 from hil.capture.schema import hex_id, received_key, scheduled_key
 from hil.datasets import load_table
 
@@ -96,59 +114,179 @@ def _ground_truth_of(dataset: str, trip, host, idm_host, duration
             for snap in simulate(the_plan, cam)}
 
 
-def score(directory: Path) -> dict:
-    """Every score of a capture directory (see the module docstring)."""
-    cap = read_capture(directory)
-    rve_cfg, obu_cfg, truth, schedule = cap.rve_config, cap.obu_config, cap.truth, cap.schedule
-    ticks, tracks, rx, events = cap.ticks, cap.tracks, cap.rx, cap.events
-    names = {tid: v for v, tid in rve_cfg["vehicles"].items()}
-    offset = clock_offset(truth, ticks[0], directory)
-    truth_xy = {tid: (t, x, y)
-                for tid, (_, t, x, y) in truth_in_frame(truth, obu_cfg["origin"]).items()}
+def _truth_tracks(cap: Capture, origin) -> dict[str, tuple[np.ndarray, np.ndarray,
+                                                             np.ndarray]]:
+    """The RVE's truth in the OBU's ENU frame, ``id -> (t, x, y)``, read as a stream (as
+    :func:`hil.capture.truth_in_frame` computes it, without keeping the records)."""
+    frame = EnuFrame(*origin)
+    cols: dict[str, tuple[array, array, array]] = {}
+    for r in cap.iter_truth():
+        c = cols.get(r["id"])
+        if c is None:
+            c = cols[r["id"]] = (array("d"), array("d"), array("d"))
+        c[0].append(r["t"])
+        c[1].append(r["lat"])
+        c[2].append(r["lon"])
+    out = {}
+    for tid, (t, lat, lon) in cols.items():
+        x, y, _ = frame.to_enu(np.array(lat), np.array(lon), 0.0)
+        out[tid] = (np.array(t), np.atleast_1d(x), np.atleast_1d(y))
+    return out
 
+
+class _Pte:
+    """PTE samples per RV as the track blocks stream by: each row of a vehicle of the run
+    within its truth's span kept as (t, x, y) in float64 arrays (24 octets a row of a
+    real RV; of the other ids, phantoms, only each one's first and last tick), the errors
+    computed at the end, RV by RV in the order of their first row, so the percentiles
+    and the mean are those of one pass over the rows."""
+
+    def __init__(self, truth_xy: dict, host_tid: str | None, offset: float) -> None:
+        self.truth_xy = truth_xy
+        self.offset = offset
+        real = [tid for tid in truth_xy if tid != host_tid]
+        self.real = np.array([int(tid, 16) for tid in real], dtype=np.uint32)
+        self.span = {int(tid, 16): (truth_xy[tid][0][0] - 1e-6, truth_xy[tid][0][-1] + 1e-6)
+                     for tid in real}
+        self.rows: dict[int, tuple[array, array, array]] = {}
+        self.first: dict[int, float] = {}  # phantom id -> first and last tick time
+        self.last: dict[int, float] = {}
+
+    def add(self, block: TrackBlock) -> None:
+        ids = block.cols["id"]
+        mine = np.isin(ids, self.real)
+        if mine.any():
+            xs, ys = block.cols["x"], block.cols["y"]
+            td = block.t - self.offset
+            for i in np.flatnonzero(mine).tolist():
+                tid = int(ids[i])
+                lo, hi = self.span[tid]
+                if td < lo or td > hi:
+                    continue
+                r = self.rows.get(tid)
+                if r is None:
+                    r = self.rows[tid] = (array("d"), array("d"), array("d"))
+                r[0].append(td)
+                r[1].append(float(xs[i]))
+                r[2].append(float(ys[i]))
+        if not mine.all():
+            other = ids[~mine].tolist()
+            self.first.update(dict.fromkeys(set(other).difference(self.first), block.t))
+            self.last.update(dict.fromkeys(other, block.t))
+
+    def errors(self) -> dict[str, np.ndarray]:
+        out = {}
+        for tid, (rt, rx, ry) in self.rows.items():
+            hexid = hex_id(tid)
+            t, x, y = self.truth_xy[hexid]
+            td = np.array(rt)
+            out[hexid] = np.hypot(np.array(rx) - np.interp(td, t, x),
+                                  np.array(ry) - np.interp(td, t, y))
+        return out
+
+
+def _frames(cap: Capture, names: dict[str, str], sent: dict) -> dict:
+    """Every frame of ``obu.rx`` counted once, by what it was (one pass): ``received``,
+    the first accepted copy of a message the RVE sent as an RV (its key among the
+    schedule's), with its latency from send to decision; ``duplicate`` a later copy of
+    one; ``unmatched`` an accepted frame of a vehicle of the run that the RVE never sent
+    as an RV message (a copy with its count or secMark flipped, the host's own frame
+    heard on the RV channel); ``phantom`` an accepted frame of an id the RVE never sent;
+    ``garbage`` (decode errors, by reason), ``rejected``, ``quarantined``, ``unticked``.
+    The RV channel's frames are the sum of these; ``host`` counts the host channel's
+    decode errors."""
+    counts = dict.fromkeys(("received", "duplicate", "unmatched", "phantom", "rejected",
+                            "quarantined", "unticked"), 0)
+    garbage: Counter = Counter()
+    security: Counter = Counter()
+    host_errors = 0
+    seen: set = set()
+    latency = array("d")
+    for r in cap.iter_rx():
+        status = r.get("status")
+        if r.get("verdict"):
+            security[r["verdict"]] += 1
+        if r.get("channel") != "rv":
+            if status not in _STATUSES:
+                garbage[status] += 1
+                host_errors += 1
+            continue
+        if status != "ok":
+            if status in counts:
+                counts[status] += 1
+            else:
+                garbage[status] += 1
+            continue
+        key = received_key(r)
+        if key in sent:
+            if key in seen:
+                counts["duplicate"] += 1
+            else:
+                seen.add(key)
+                counts["received"] += 1
+                latency.append(r["decided_unix"] - sent[key])
+        elif r.get("id") in names:
+            counts["unmatched"] += 1
+        else:
+            counts["phantom"] += 1
+    return {**counts, "garbage": dict(garbage), "host_errors": host_errors,
+            "security": dict(security), "latency_s": np.array(latency)}
+
+
+#: The statuses of an rx record that are not a decode error.
+_STATUSES = ("ok", "rejected", "quarantined", "unticked")
+
+
+def score(directory: Path) -> dict:
+    """Every score of a capture directory (see the module docstring), reading each file
+    as a stream: memory for the run's real RVs and messages, not for the capture."""
+    cap = read_capture(directory)
+    rve_cfg, obu_cfg = cap.rve_config, cap.obu_config
+    names = {tid: v for v, tid in rve_cfg["vehicles"].items()}
     host_tid = rve_cfg["vehicles"].get(rve_cfg.get("host"))
-    per_rv: dict[str, list[float]] = defaultdict(list)
-    phantom_rows: dict[str, list[float]] = defaultdict(list)  # id -> tick times
-    for row in tracks:
-        tr = truth_xy.get(row["id"]) if row["id"] != host_tid else None
-        if tr is None:  # not a remote vehicle of this run: a phantom
-            phantom_rows[row["id"]].append(row["t"])
-            continue
-        t, x, y = tr
-        td = row["t"] - offset
-        if td < t[0] - 1e-6 or td > t[-1] + 1e-6:
-            continue
-        per_rv[row["id"]].append(float(np.hypot(row["x"] - np.interp(td, t, x),
-                                                row["y"] - np.interp(td, t, y))))
-    all_pte = np.concatenate([np.array(v) for v in per_rv.values()]) if per_rv else np.array([])
+    real = set(names) - {host_tid}
+    first_tick = next(cap.iter_ticks())
+    offset = clock_offset(cap.iter_truth(), first_tick, directory)
+    truth_xy = _truth_tracks(cap, obu_cfg["origin"])
+
+    pte = _Pte(truth_xy, host_tid, offset)
+    for block in cap.iter_track_blocks():
+        pte.add(block)
+    per_rv = pte.errors()
+    all_pte = np.concatenate(list(per_rv.values())) if per_rv else np.array([])
 
     # the warnings against the ground truth, vehicle by vehicle (catc.apps.verdict)
     gt = _ground_truth(rve_cfg)
     confusion = Confusion()
-    for tk in ticks:
+    seen_t: set[float] = set()
+    n_ticks = phantom_warning_ticks = 0
+    for tk in cap.iter_ticks():
+        n_ticks += 1
+        seen_t.add(round(tk["t"], 3))
+        if any(w[1] not in real for w in tk["warnings"]):
+            phantom_warning_ticks += 1
         truth_warn = gt.get(round(tk["t"], 3))  # both on the host's secMark clock
         if truth_warn is None:
             continue
         confusion.add(truth_warn, by_app((w[0], w[1]) for w in tk["warnings"]))
     apps = confusion.as_dict()
-    whole = coverage(set(gt), ticks, cap.rve_end, cap.obu_end)
+    whole = coverage(set(gt), seen_t, cap.rve_end, cap.obu_end)
 
-    # counts and latency
-    rv_sched = [r for r in schedule if r["channel"] == "rv" and r.get("cause") != "attack"]
-    sent = [r for r in rv_sched if not r["dropped"]]
-    ok_all = [r for r in rx if r.get("channel") == "rv" and r.get("status") == "ok"]
-    # the run's real vehicles, each message once (a replay attack sends some again)
-    ok = list({received_key(r): r for r in ok_all if r.get("id") in names}.values())
-    bad = Counter(r["status"] for r in rx
-                  if r.get("status") not in ("ok", "rejected", "quarantined", "unticked"))
-    # IEEE 1609.2 verdicts (obu run --verify): "ok" or the reason, whether the frame was
-    # dropped (enforce: status "rejected") or tracked anyway (log)
-    security = Counter(r["verdict"] for r in rx if r.get("verdict"))
-    send_time = {scheduled_key(r): r["sent_unix"] for r in sent}
-    lat = [r["decided_unix"] - send_time[received_key(r)]
-           for r in ok if received_key(r) in send_time]
-    lat_ms = np.array(lat) * 1000.0
-    attacks, mbr = _attacks(schedule, rx, events, names), cap.mbr
+    # the RVE's RV messages (an attack's own frames apart) and what the OBU made of them
+    n_rv = 0
+    sent: dict = {}  # message key -> send time, for the join with obu.rx
+    for r in cap.iter_schedule():
+        if r["channel"] == "rv" and r.get("cause") != "attack":
+            n_rv += 1
+            if not r["dropped"]:
+                sent[scheduled_key(r)] = r["sent_unix"]
+    frames = _frames(cap, names, sent)
+    lat_ms = frames.pop("latency_s") * 1000.0
+    garbage, security = frames["garbage"], frames.pop("security")
+    events = cap.events
+    attacks = _attacks(cap, names)
+    mbr = cap.mbr
+    missing = cap.missing_segments()
     result = {
         "pte95_m": round(float(np.percentile(all_pte, 95)), 4) if len(all_pte) else None,
         "pte_mean_m": round(float(all_pte.mean()), 4) if len(all_pte) else None,
@@ -157,23 +295,30 @@ def score(directory: Path) -> dict:
         "fcw_accuracy": apps["fcw"]["accuracy"],
         "fcw": {k: apps["fcw"][k] for k in KEYS},
         "apps": apps,
-        "sent": len(sent), "dropped": len(rv_sched) - len(sent), "received": len(ok),
-        "decode_errors": dict(bad),
-        "security": dict(security),
-        "rejected": sum(1 for r in rx if r.get("status") == "rejected"),
+        # received: the RVE's own RV messages the OBU took, each once (<= sent); the
+        # other frames are counted apart in "frames"
+        "sent": len(sent), "dropped": n_rv - len(sent), "received": frames["received"],
+        "decode_errors": garbage,
+        "security": security,
+        "rejected": frames["rejected"],
         # received after the run's last host frame: never stepped
-        "unticked": sum(1 for r in rx if r.get("status") == "unticked"),
+        "unticked": frames["unticked"],
+        "frames": frames,
         "latency_ms": {"p50": round(float(np.percentile(lat_ms, 50)), 3),
                        "p99": round(float(np.percentile(lat_ms, 99)), 3),
                        "max": round(float(lat_ms.max()), 3)} if len(lat_ms) else None,
         "warnings": dict(Counter(f"{e['app']}" for e in events if e["kind"] == "start")),
         "events": events,
-        "phantom_received": len(ok_all) - len(ok),
-        "phantom": _phantoms(phantom_rows, events, ticks, set(names) - {host_tid}),
+        # accepted frames of ids the RVE never sent
+        "phantom_received": frames["phantom"],
+        "phantom": _phantoms(pte.first, pte.last, events, phantom_warning_ticks, real),
         "attacks": attacks,
-        "mbd": _detection(attacks, schedule, rx, names, mbr) if attacks and mbr is not None
+        "mbd": _detection(attacks, cap, names, mbr) if attacks and mbr is not None
         else None,
-        "ticks": len(ticks), "run": whole, "complete": whole["coverage"] == 1.0,
+        "ticks": n_ticks, "run": whole, "complete": whole["coverage"] == 1.0,
+        "capture": {"segments": len(cap.segments()), "segments_deleted": missing,
+                    "torn": [{"file": p.name, "offset": off, "why": why}
+                             for p, off, why in cap.torn]},
         "predictor": obu_cfg["settings"].get("predictor"),
         "per": rve_cfg["channel"]["per"], "rate_hz": rve_cfg["channel"]["rate_hz"],
         "dataset": rve_cfg["dataset"]["name"],
@@ -181,31 +326,29 @@ def score(directory: Path) -> dict:
     return result
 
 
-def _phantoms(rows: dict[str, list[float]], events: list[dict], ticks: list[dict],
-              real: set[str]) -> dict:
+def _phantoms(first: dict[int, float], last: dict[int, float], events: list[dict],
+              warning_ticks: int, real: set[str]) -> dict:
     """Tracks the OBU classified whose id no remote vehicle of the run sent (corrupted
     copies, the host's own id, attackers): how many, how long each lived (s, first to
     last tick it was in the snapshot), and the warnings they raised (events, and ticks
     with a warning condition on them)."""
-    life = sorted(round(max(t) - min(t), 3) for t in rows.values())
+    life = sorted(round(last[k] - first[k], 3) for k in first)
     fake_events = [e for e in events if e["kind"] == "start" and e["rv"] not in real]
-    return {"tracks": len(rows), "ids": sorted(rows)[:50],
+    return {"tracks": len(first), "ids": sorted(hex_id(k) for k in first)[:50],
             "lifetime_s": {"max": life[-1], "median": life[len(life) // 2]} if life else None,
             "warnings": len(fake_events),
             "warning_apps": dict(Counter(e["app"] for e in fake_events)),
-            "warning_ticks": sum(1 for tk in ticks
-                                 if any(w[1] not in real for w in tk["warnings"]))}
+            "warning_ticks": warning_ticks}
 
 
-def _attacks(schedule: list[dict], rx: list[dict], events: list[dict],
-             names: dict[str, str]) -> dict[str, dict]:
+def _attacks(cap: Capture, names: dict[str, str]) -> dict[str, dict]:
     """Per attack kind (``rve run --attack``): the frames the RVE sent for it, what the
     OBU accepted (tracked), rejected (by verdict) and quarantined, and the warnings raised
     on the ids it fabricated (every one a false alarm: those vehicles do not exist)."""
     kind_of: dict[tuple, str] = {}  # message key -> kind, for the rx join
     fabricated: dict[str, str] = {}
     out: dict[str, dict] = {}
-    for r in schedule:
+    for r in cap.iter_schedule():
         kind = r.get("attack")
         if kind is None:
             continue
@@ -218,7 +361,7 @@ def _attacks(schedule: list[dict], rx: list[dict], events: list[dict],
     if not out:
         return {}
     seen: set[tuple] = set()
-    for r in rx:
+    for r in cap.iter_rx():
         if r.get("channel") != "rv" or "id" not in r:
             continue
         kind = fabricated.get(r["id"]) or kind_of.get(received_key(r))
@@ -235,7 +378,7 @@ def _attacks(schedule: list[dict], rx: list[dict], events: list[dict],
         elif r.get("status") == "rejected":
             rej = out[kind]["rejected"]
             rej[r["verdict"]] = rej.get(r["verdict"], 0) + 1
-    for e in events:
+    for e in cap.events:
         kind = fabricated.get(e["rv"])
         if kind is not None and e["kind"] == "start":
             w = out[kind]["warnings"]
@@ -243,19 +386,18 @@ def _attacks(schedule: list[dict], rx: list[dict], events: list[dict],
     return out
 
 
-def _detection(out: dict, schedule: list[dict], rx: list[dict], names: dict[str, str],
-               mbr: list[dict]) -> dict:
+def _detection(out: dict, cap: Capture, names: dict[str, str], mbr: list[dict]) -> dict:
     """Misbehavior detection against the attacks' ground truth: per attack kind (added to
     ``out``), precision and recall over the attacking ids whose frames passed verification
     (the rest never reach the checks; an id is detected when a report names it as the
     suspect, and precision counts the reports' other suspects against it) and the time
     from the attacker's first frame to the message that raised its first report (dataset
     seconds).  Returns the summary: suspects, false suspects, reports."""
-    passed = {r.get("id") for r in rx if r.get("status") in ("ok", "quarantined")}
-    attackers = {r["id"]: r["attack"] for r in schedule  # id -> kind; fabricated first
-                 if r.get("attack") and r["id"] not in names}
+    passed = {r.get("id") for r in cap.iter_rx() if r.get("status") in ("ok", "quarantined")}
+    attackers = {r["id"]: r["attack"] for r in cap.iter_schedule()  # id -> kind; fabricated
+                 if r.get("attack") and r["id"] not in names}  # first
     first_sent: dict[str, float] = {}  # id -> dataset time of its first attack frame
-    for r in schedule:
+    for r in cap.iter_schedule():
         if r.get("attack") in out and "sent_unix" in r:
             if r["attack"] in ("offset", "speed", "replay"):  # a real id misbehaving
                 attackers.setdefault(r["id"], r["attack"])
@@ -293,12 +435,12 @@ def ending(end: dict | None) -> str:
     return end["exit"] + (f" ({end['reason']})" if end.get("reason") else "")
 
 
-def coverage(expected: set[float], ticks: list[dict], rve_end: dict | None,
+def coverage(expected: set[float], seen: set[float], rve_end: dict | None,
              obu_end: dict | None) -> dict:
-    """How whole the run is: the OBU's ticks against every host frame of the replay
-    (``expected``: their times on the host's secMark clock), the gaps (runs of missing
-    consecutive ticks, ``[first, last]`` tick time), and how each daemon ended."""
-    seen = {round(tk["t"], 3) for tk in ticks}
+    """How whole the run is: the OBU's ticks (``seen``: their times, rounded to the ms)
+    against every host frame of the replay (``expected``: their times on the host's
+    secMark clock), the gaps (runs of missing consecutive ticks, ``[first, last]`` tick
+    time), and how each daemon ended."""
     gaps: list[list[float]] = []
     for t in sorted(expected - seen):
         if gaps and t - gaps[-1][1] <= 0.1 + 1e-6:
@@ -325,6 +467,9 @@ def table(r: dict) -> str:
         f"{run['longest_gap_s']} s); RVE ended: {run['rve']}; OBU ended: {run['obu']}",
         f"messages: sent {r['sent']}, dropped by the channel {r['dropped']}, "
         f"received {r['received']}, decode errors {sum(r['decode_errors'].values())}",
+        "other frames at the RV port: " + ", ".join(
+            f"{k} {r['frames'][k]}" for k in ("duplicate", "unmatched", "phantom", "rejected",
+                                              "quarantined", "unticked")),
         f"PTE95 {r['pte95_m']} m (mean {r['pte_mean_m']} m){part}",
         f"FCW accuracy {r['fcw_accuracy']}  (TP {f['tp']}, TN {f['tn']}, FP {f['fp']}, "
         f"FN {f['fn']}; by vehicle){part}",
@@ -366,7 +511,26 @@ def table(r: dict) -> str:
                                                  sorted(r["warnings"].items())) or "none"))
     lines.append("PTE95 per RV [m]: " + ", ".join(f"{k} {v}" for k, v in
                                                    r["pte95_per_rv"].items()) + part)
+    c = r["capture"]
+    if c["segments_deleted"]:
+        lines.append(f"capture: {c['segments']} segments kept, "
+                     f"{len(c['segments_deleted'])} deleted by the cap (--capture-max-mb: "
+                     f"{_ranges(c['segments_deleted'])}); their ticks count as missing")
+    for t in c["torn"]:
+        lines.append(f"capture: {t['file']} torn at byte {t['offset']} ({t['why']}); "
+                     "scored up to there")
     return "\n".join(lines)
+
+
+def _ranges(ks: list[int]) -> str:
+    """``[1, 2, 3, 7]`` as ``1-3, 7``."""
+    out: list[list[int]] = []
+    for k in ks:
+        if out and k == out[-1][1] + 1:
+            out[-1][1] = k
+        else:
+            out.append([k, k])
+    return ", ".join(f"{a}-{b}" if b > a else f"{a}" for a, b in out)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -375,6 +539,10 @@ def run(args: argparse.Namespace) -> int:
     except (ValueError, KeyError) as err:  # CaptureError and DatasetError included
         print(f"captures score: {err}", file=sys.stderr)
         return 2
+    torn = torn_line([(args.dir / t["file"], t["offset"], t["why"])
+                      for t in result["capture"]["torn"]], "captures score")
+    if torn:
+        print(torn, file=sys.stderr)
     if args.json:
         print(json.dumps(result))
     else:

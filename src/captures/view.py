@@ -2,7 +2,7 @@
 
 The same page ``obu run --web`` serves (``obu.web``), in replay mode: play, pause, speed and
 a time slider over the OBU's ticks, and the list of warning events (a click jumps to its
-moment).  Each tick shows what the OBU tracked (``obu.tracks.jsonl``), its warnings
+moment).  Each tick shows what the OBU tracked (``obu.tracks.bin``), its warnings
 (``obu.ticks.jsonl``) and, where the capture has the RVE's ground truth
 (``rve.truth.jsonl``), every vehicle's true position, on the OBU's clock and ENU frame.
 ``/api/state?tick=N`` returns tick N as JSON, ``/api/ticks`` the tick times and events.
@@ -18,7 +18,16 @@ import signal
 import sys
 from pathlib import Path
 
-from hil.capture import clock_offset, read_capture, read_json, read_lines, schema, truth_in_frame
+from hil.capture import (
+    clock_offset,
+    iter_lines,
+    read_capture,
+    read_json,
+    read_tracks,
+    schema,
+    segment_files,
+    truth_in_frame,
+)
 from hil.config import web_address
 
 DEFAULT_PORT = 8750
@@ -40,8 +49,7 @@ def load(directory: Path):
     from obu.web import Replay
 
     directory = Path(directory)
-    ticks_path = directory / schema.OBU_TICKS
-    if not ticks_path.is_file():
+    if not segment_files(directory, schema.OBU_TICKS):
         raise ValueError(f"{directory}: no {schema.OBU_TICKS} (not an obu run --capture)")
     truth = None
     counters = {}
@@ -53,11 +61,12 @@ def load(directory: Path):
         truth = {tid: (t + offset, x, y) for tid, (_, t, x, y)
                  in truth_in_frame(cap.truth, cap.obu_config["origin"]).items()}
         ticks, tracks, events = cap.ticks, cap.tracks, cap.events
-    else:
-        ticks = read_lines(ticks_path)
-        tracks = read_lines(directory / schema.OBU_TRACKS)
-        ev = directory / schema.OBU_EVENTS
-        events = read_lines(ev) if ev.is_file() else []
+    else:  # the OBU's files alone, segments in order
+        def lines(name: str) -> list[dict]:
+            return [r for _, p in segment_files(directory, name) for r in iter_lines(p)]
+
+        ticks, tracks, events = lines(schema.OBU_TICKS), read_tracks(directory), \
+            lines(schema.OBU_EVENTS)
     if not ticks:
         raise ValueError(f"{directory}: the OBU recorded no tick")
     return Replay(ticks, tracks, events, truth, counters)

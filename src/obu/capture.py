@@ -1,11 +1,23 @@
 """The OBU's capture directory (``obu run --capture DIR``): its files and records, all as
 :mod:`hil.capture.schema` names and builds them.
 
-The JSON-lines files are append-only and flushed at every tick, so ``kill -9`` loses at
-most the last tick; the config and the counters are rewritten whole (through a temporary
-file and a rename, so a reader never sees half of one).  A write that fails (a full
-disk) raises :class:`hil.errors.WriteError` naming the file; :meth:`ObuCapture.end` still
-flushes and closes the others and writes the end record, which names the failure.
+The per-tick files (``obu.rx.jsonl.gz``, ``obu.ticks.jsonl``, ``obu.tracks.bin``,
+``obu.events.jsonl``, ``obu.mbr.jsonl``) are append-only and flushed at every tick, so
+``kill -9`` loses at most the last tick; the config and the counters are rewritten whole
+(through a temporary file and a rename, so a reader never sees half of one).
+
+The cap (``obu run --capture-max-mb N``).  The per-tick files are then written in
+segments of N/10 MB, a time slice each: after a tick that took the current segment past
+N/10 MB every file starts its next segment (:func:`hil.capture.schema.segment_name`), and
+while the OBU's files take more than 0.9 N MB (room for the new segment) the oldest
+segment is deleted, but never the first (the start of the run: its ENU origin, its first
+tick, which the score's clocks join on) nor the current one.  The directory thus holds
+the run's start and its latest minutes, within N MB and one tick's records; ``captures
+score`` reads what is left, names the deleted segments, and counts their ticks as missing
+(an incomplete run).  The counters and the end record say how many segments were written
+and deleted.  A write that fails (a full disk) raises
+:class:`hil.errors.WriteError` naming the file; :meth:`ObuCapture.end` still flushes and
+closes the others and writes the end record, which names the failure.
 """
 
 from __future__ import annotations
@@ -18,7 +30,7 @@ from typing import Any
 
 from catc.bsm import BSM
 from catc.cam import MapSnapshot
-from hil.capture import JsonLines, claim, finish, schema, versions
+from hil.capture import GzipJsonLines, JsonLines, TrackWriter, claim, finish, schema, versions
 from hil.errors import write_error
 
 __all__ = ["ObuCapture", "Received"]
@@ -39,14 +51,72 @@ class ObuCapture:
         claim(directory, "obu", getattr(args, "overwrite", False))
         self.run_id = schema.new_run_id()
         self.started = time.time()
-        self.rx = JsonLines(directory / schema.OBU_RX)
-        self.ticks = JsonLines(directory / schema.OBU_TICKS)
-        self.tracks = JsonLines(directory / schema.OBU_TRACKS)
-        self.events = JsonLines(directory / schema.OBU_EVENTS)
-        self.mbr = JsonLines(directory / schema.OBU_MBR) if args.mbd else None
+        self.mbd = bool(args.mbd)
+        cap_mb = getattr(args, "capture_max_mb", None)
+        self.max_bytes = None if cap_mb is None else float(cap_mb) * 1e6
+        self.segment = 0
+        self.dropped: list[int] = []
+        self._open(0)
         self.settings = schema.settings(args)
         self.origin_written = False
         self.write_config(None)
+
+    def _open(self, k: int) -> None:
+        """The per-tick files of segment ``k``."""
+        def path(name: str) -> Path:
+            return self.dir / schema.segment_name(name, k)
+
+        self.rx = GzipJsonLines(path(schema.OBU_RX))
+        self.ticks = JsonLines(path(schema.OBU_TICKS))
+        self.tracks = TrackWriter(path(schema.OBU_TRACKS))
+        self.events = JsonLines(path(schema.OBU_EVENTS))
+        self.mbr = JsonLines(path(schema.OBU_MBR)) if self.mbd else None
+
+    def _segment_bytes(self) -> int:
+        return sum(f.tell() for f in self._files())
+
+    def _rotate(self) -> None:
+        """Start the next segment when this one is full; then delete the oldest segments
+        but the first while the OBU's files are over the cap (module docstring)."""
+        if self.max_bytes is None or self._segment_bytes() < self.max_bytes / 10:
+            return
+        failure = finish(self._files())  # the segment's files, each closed
+        if failure is not None:
+            raise failure
+        self.segment += 1
+        self._open(self.segment)
+        sizes: dict[int, int] = {}
+        other = 0
+        for p in self.dir.glob("obu.*"):
+            parts = p.name.split(".")
+            k = int(parts[2]) if len(parts) > 3 and parts[2].isdigit() else None
+            if p.name in schema.SEGMENTED:
+                k = 0
+            try:
+                size = p.stat().st_size
+            except OSError:  # a config's temporary file, renamed meanwhile
+                continue
+            if k is None:
+                other += size
+            else:
+                sizes[k] = sizes.get(k, 0) + size
+        total = other + sum(sizes.values())
+        for k in sorted(sizes):
+            if total <= self.max_bytes * 0.9:  # room for the segment just started
+                break
+            if k in (0, self.segment):
+                continue
+            for name in schema.SEGMENTED:
+                (self.dir / schema.segment_name(name, k)).unlink(missing_ok=True)
+            total -= sizes[k]
+            self.dropped.append(k)
+
+    def _segments(self) -> dict[str, int]:
+        """What the counters and the end record say of a capped capture's segments."""
+        if self.max_bytes is None:
+            return {}
+        return {"capture_segments": self.segment + 1,
+                "capture_segments_deleted": len(self.dropped)}
 
     def _replace(self, name: str, text: str) -> None:
         tmp = self.dir / f"{name}.tmp"
@@ -72,10 +142,12 @@ class ObuCapture:
     def write_end(self, exit: str, reason: str, **counts: int) -> None:
         """How the run ended (``obu.end.json``, :func:`hil.capture.schema.end`)."""
         self._replace(schema.OBU_END, json.dumps(schema.end(
-            self.run_id, exit, reason, self.started, time.time(), **counts), indent=1))
+            self.run_id, exit, reason, self.started, time.time(), **counts,
+            **self._segments()), indent=1))
 
     def write_counters(self, counters: dict[str, Any]) -> None:
-        self._replace(schema.OBU_COUNTERS, json.dumps(counters, indent=1, sort_keys=True))
+        self._replace(schema.OBU_COUNTERS, json.dumps(counters | self._segments(), indent=1,
+                                                      sort_keys=True))
 
     def frame(self, rx_unix: float | None, channel: str, data: bytes, status: str,
               **details: Any) -> None:
@@ -101,15 +173,16 @@ class ObuCapture:
 
     def tick(self, snap: MapSnapshot, host_sec_mark: int, step_ms: float, decided: float,
              received: list[Received]) -> None:
-        """One tick: the RV messages it took, the tick, its tracks; then flush."""
+        """One tick: the RV messages it took, the tick, its tracks; then flush (and, with
+        a cap, start the next segment when this one is full)."""
         for r in received:
             self.message(r, "ok", tick=snap.t, decided_unix=decided)
         self.ticks.write(schema.tick(snap, host_sec_mark, step_ms, decided))
-        for row in schema.track_rows(snap, host_sec_mark):
-            self.tracks.write(row)
+        self.tracks.write(snap.t, host_sec_mark, schema.track_columns(snap))
         self.flush()
+        self._rotate()
 
-    def _files(self) -> list[JsonLines]:
+    def _files(self) -> list[Any]:
         return [f for f in (self.rx, self.ticks, self.tracks, self.events, self.mbr)
                 if f is not None]
 

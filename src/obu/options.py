@@ -18,6 +18,7 @@ DEFAULTS = {
     "warnings": None, "collect_ms": 5.0, "can_interface": "virtual", "can_channel": None,
     "can_fd": False, "progress": True, "max_tracks": 1000, "verify": "off", "trust": None,
     "mbd": False, "web": None, "host_id": None, "signatures": "strict",
+    "capture_max_mb": None,
 }
 
 
@@ -47,6 +48,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "id heard on the host channel)")
     p.add_argument("--predictor", choices=NAMES, help="tracking predictor (default hgp)")
     p.add_argument("--capture", metavar="DIR", help="capture directory (see --help)")
+    p.add_argument("--capture-max-mb", type=positive, metavar="MB",
+                   help="keep the OBU's capture files within MB megabytes: they are written "
+                        "in segments of MB/10, and the oldest segments but the first are "
+                        "deleted (the run's start and its latest minutes are kept; "
+                        "captures score names what is missing); default: no cap")
     p.add_argument("--overwrite", action="store_true", default=None,
                    help="replace an OBU run already in the capture directory (refused "
                         "without)")

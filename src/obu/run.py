@@ -18,7 +18,7 @@ Security (``--verify log|enforce --trust PKI_DIR|ROOT.oer``): every RV frame's I
 envelope (inside a WSMP message or not) is verified with :class:`catc.security.Verifier`
 at its receive time: signature, chain to the trusted root, psid 0x20, validity period,
 generationTime freshness.  Each verdict is counted (``verify_ok``, ``verify_<reason>``)
-and kept in the frame's ``obu.rx.jsonl`` record (``verdict``); ``enforce`` drops a frame
+and kept in the frame's ``obu.rx.jsonl.gz`` record (``verdict``); ``enforce`` drops a frame
 that fails (status ``rejected``), ``log`` tracks it anyway.  Host frames are not verified
 (they are the host's own state, not radio traffic).
 
@@ -32,12 +32,14 @@ Outputs:
   (a step over 100 ms, or a tick decided over 100 ms after its host frame arrived),
   warnings;
 * the capture directory (append-only, flushed at every tick): ``obu.config.json``
-  (settings, versions, ENU origin), ``obu.rx.jsonl`` (every frame with its receive time,
-  channel, octets and what became of it; ``unticked``: received after the last host
+  (settings, versions, ENU origin), ``obu.rx.jsonl.gz`` (every frame with its receive
+  time, channel, octets and what became of it; ``unticked``: received after the last host
   frame, so never stepped), ``obu.ticks.jsonl`` (one line per tick: time,
-  HV state, step time, warnings), ``obu.tracks.jsonl`` (every tracked RV at every tick:
-  estimate, source, age, zones now and predicted, lane), ``obu.events.jsonl`` (warning
-  starts and ends), ``obu.counters.json`` (rewritten every second and at the end).
+  HV state, step time, warnings), ``obu.tracks.bin`` (every tracked RV at every tick:
+  estimate, source, age, zones now and predicted, lane; compact, ``captures tracks``
+  prints it), ``obu.events.jsonl`` (warning starts and ends), ``obu.counters.json``
+  (rewritten every second and at the end); ``--capture-max-mb`` caps them
+  (:mod:`obu.capture`).
 
 The host channel defends itself (:class:`obu.host.HostGate`): only the host's id
 (``--host-id``, or the first heard) is believed, and only frames its own motion explains:

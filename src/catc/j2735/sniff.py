@@ -20,13 +20,20 @@ Text input is one of:
   26-octet header, then 1609.2, then the frame);
 - ODE JSON (one object, an array, or JSON lines): the hex in ``payload.data.bytes``,
   else in ``metadata.asn1``.  Records with decoded values only give no frames.  The
-  OBU's own ``obu.rx.jsonl`` (records with ``rx_unix``) gives the frame in ``hex``;
+  OBU's own ``obu.rx.jsonl.gz`` (records with ``rx_unix``; ``captures decode`` unzips it)
+  gives the frame in ``hex``;
 - ODE XML (``OdeAsn1Data``): the hex in ``<bytes>`` elements, else in ``<asn1>``.
 
 Each frame comes back as an :class:`Extracted` whose ``container`` names the file's
 outer format and whose ``meta`` holds ``index`` (frame number in the file),
 ``layers`` (outermost first), the position in the file (``line`` or ``record``) and
 whatever the containers said (OBU log header fields, 1609.2 security and psid).
+
+Torn tails: a capture its writer was killed in (or whose disk filled) may end inside a
+pcapng block or a JSON line.  Given a ``torn`` list, :func:`extract_frames` returns the
+frames before it and appends ``(byte offset, why)`` of where the whole part ends;
+without one, a pcapng cut off raises ``DecodeError("truncated")`` and a torn JSON line
+``DecodeError("garbage")``, as before.
 """
 
 from __future__ import annotations
@@ -126,16 +133,30 @@ def _from_hex(text: str) -> list[tuple[bytes, dict[str, Any]]]:
     return _unpack(_hex(text, "hex text"))
 
 
-def _json_records(text: str) -> list[Any]:
+def _json_records(text: str, torn: _Torn | None = None) -> list[Any]:
+    """One JSON document (a list: its items), else JSON lines.  With ``torn``
+    (``[offset of the text in the file, whether the file ends inside a line]``), a last
+    line cut off after whole ones ends the records, its offset appended to the list."""
     try:
         doc = json.loads(text)
         return doc if isinstance(doc, list) else [doc]
     except (ValueError, RecursionError):
         pass
-    try:
-        return [json.loads(line) for line in text.splitlines() if line.strip()]
-    except (ValueError, RecursionError):
-        raise DecodeError("garbage", f"text is not valid JSON or JSON lines; {ACCEPTED}") from None
+    out: list[Any] = []
+    lines = text.splitlines(keepends=True)
+    off = torn.base if torn is not None else 0
+    for n, line in enumerate(lines):
+        if line.strip():
+            try:
+                out.append(json.loads(line))
+            except (ValueError, RecursionError):
+                if torn is not None and torn.open_end and out and n == len(lines) - 1:
+                    torn.cuts.append((off, "last JSON line cut off"))
+                    break
+                raise DecodeError("garbage",
+                                  f"text is not valid JSON or JSON lines; {ACCEPTED}") from None
+        off += len(line.encode())
+    return out
 
 
 def _get(obj: Any, *keys: str) -> Any:
@@ -144,9 +165,9 @@ def _get(obj: Any, *keys: str) -> Any:
     return obj
 
 
-def _from_json(text: str) -> list[tuple[bytes, dict[str, Any]]]:
+def _from_json(text: str, torn: _Torn | None = None) -> list[tuple[bytes, dict[str, Any]]]:
     frames = []
-    for n, rec in enumerate(_json_records(text)):
+    for n, rec in enumerate(_json_records(text, torn)):
         if isinstance(rec, dict) and "rx_unix" in rec:  # the OBU's own obu.rx.jsonl
             if isinstance(rec.get("hex"), str) and rec["hex"]:
                 for f, m in _unpack(_hex(rec["hex"], f"JSON record {n} hex")):
@@ -223,19 +244,30 @@ def _udp_payload(packet: bytes, linktype: int) -> tuple[bytes, int, int] | None:
             int.from_bytes(udp[0:2], "big"), int.from_bytes(udp[2:4], "big"))
 
 
-def _from_pcapng(data: bytes) -> list[tuple[bytes, dict[str, Any]]]:
-    """Every UDP payload of a pcapng file (module docstring)."""
+def _from_pcapng(data: bytes, torn: _Torn | None = None) -> list[tuple[bytes, dict[str, Any]]]:
+    """Every UDP payload of a pcapng file (module docstring); a last block cut off ends it
+    (``torn``, else DecodeError)."""
     out: list[tuple[bytes, dict[str, Any]]] = []
     pos, order, linktypes, tsres, n = 0, "<", [], [], 0
-    while pos + 12 <= len(data):
+    while pos < len(data):
+        if pos + 12 > len(data):
+            if torn is None:
+                raise DecodeError("truncated", f"pcapng block at octet {pos} is cut off")
+            torn.cuts.append((pos, "pcapng block header cut off"))
+            break
         if int.from_bytes(data[pos:pos + 4], "little") == _PCAPNG_SHB:
             magic = data[pos + 8:pos + 12]
             order = "little" if magic == b"\x4d\x3c\x2b\x1a" else "big"
             linktypes, tsres = [], []
         btype = int.from_bytes(data[pos:pos + 4], order)
         total = int.from_bytes(data[pos + 4:pos + 8], order)
-        if total < 12 or total % 4 or pos + total > len(data):
-            raise DecodeError("truncated", f"pcapng block at octet {pos} is cut off")
+        if total < 12 or total % 4:
+            raise DecodeError("garbage", f"pcapng block at octet {pos} has length {total}")
+        if pos + total > len(data):
+            if torn is None:
+                raise DecodeError("truncated", f"pcapng block at octet {pos} is cut off")
+            torn.cuts.append((pos, "pcapng block cut off"))
+            break
         body = data[pos + 8:pos + total - 4]
         if btype == 1 and len(body) >= 8:
             linktypes.append(int.from_bytes(body[0:2], order))
@@ -266,10 +298,24 @@ def _from_pcapng(data: bytes) -> list[tuple[bytes, dict[str, Any]]]:
     return out
 
 
-def extract_frames(data: bytes) -> list[Extracted]:
-    """The frames in a capture file's content, detecting its format (see module doc)."""
+@dataclass
+class _Torn:
+    """Where a file is read from (``base``: the text's first octet in it), whether it ends
+    inside a line, and the cuts found: ``(byte offset, why)``."""
+
+    cuts: list[tuple[int, str]]
+    base: int = 0
+    open_end: bool = True
+
+
+def extract_frames(data: bytes, torn: list[tuple[int, str]] | None = None
+                   ) -> list[Extracted]:
+    """The frames in a capture file's content, detecting its format (see module doc).
+    With ``torn`` a list, a torn tail ends the frames and ``(byte offset, why)`` of where
+    the whole part ends is appended to it."""
+    cut = None if torn is None else _Torn(torn)
     if len(data) >= 12 and int.from_bytes(data[:4], "little") == _PCAPNG_SHB:
-        found = _from_pcapng(bytes(data))
+        found = _from_pcapng(bytes(data), cut)
         return [Extracted(frame, "pcapng", {**meta, "layers": ["pcapng", *meta["layers"]],
                                             "index": i})
                 for i, (frame, meta) in enumerate(found)]
@@ -277,9 +323,12 @@ def extract_frames(data: bytes) -> list[Extracted]:
     if text is None:
         found, container = _unpack(bytes(data)), None
     else:
+        if cut is not None:
+            cut.base = len(data) - len(data.lstrip(b"\xef\xbb\xbf \t\r\n"))
+            cut.open_end = not data.endswith((b"\n", b"\r"))
         text = text.strip()
         if text[:1] in ("{", "["):
-            found, container = _from_json(text), "ode-json"
+            found, container = _from_json(text, cut), "ode-json"
         elif text[:1] == "<":
             found, container = _from_xml(text), "ode-xml"
         elif text and _HEX.fullmatch(text):

@@ -3,8 +3,14 @@
 The RVE and the OBU may share one capture directory; each writes only its own files.  Every
 record that goes into a file is built by one function here, so a field is added in one
 place, and the readers (:mod:`hil.capture.reader`, ``captures score``, ``view``, ``plot``)
-read what these build.  JSON-lines files are append-only and flushed once per tick
-(:class:`hil.capture.writers.JsonLines`); a killed daemon loses at most its last line.
+read what these build.  Every file is append-only and flushed once per tick
+(:mod:`hil.capture.writers`); a killed daemon loses at most its last tick, and the reader
+reads a file up to a torn tail and says where it was.  People read the JSON lines (ticks,
+events, end records) by hand; the two files that grow with the number of RVs and frames
+are compact: ``obu.rx.jsonl.gz`` is JSON lines in one gzip stream flushed per tick
+(``zcat`` reads it), ``obu.tracks.bin`` is binary, each tick's rows as residuals against
+the same RVs' rows of the tick before (:mod:`hil.capture.tracks`; ``captures tracks DIR``
+prints them as JSON lines).
 
 =======================  ======  ==============================================================
 file                     writer  one record per ...
@@ -22,12 +28,19 @@ file                     writer  one record per ...
                                  :func:`obu_config`)
 ``obu.end.json``         OBU     run: how it ended (:func:`end`); none when it was killed
 ``obu.counters.json``    OBU     run: every counter (rewritten every second and at the end)
-``obu.rx.jsonl``         OBU     frame received, with what became of it (:func:`received`)
+``obu.rx.jsonl.gz``      OBU     frame received, with what became of it (:func:`received`)
 ``obu.ticks.jsonl``      OBU     tick: host state, step time, warnings (:func:`tick`)
-``obu.tracks.jsonl``     OBU     tracked RV at every tick (:func:`track_rows`)
+``obu.tracks.bin``       OBU     tracked RV at every tick (:func:`track_columns`, read back as
+                                 :func:`track_rows` made them)
 ``obu.events.jsonl``     OBU     warning start or end (:func:`event`)
 ``obu.mbr.jsonl``        OBU     misbehavior detection, with ``obu run --mbd`` (:func:`report`)
 =======================  ======  ==============================================================
+
+Segments.  With ``obu run --capture-max-mb N`` the OBU's per-tick files (:data:`SEGMENTED`)
+are written in segments, a time slice each: segment 0 under the names above, segment k
+under :func:`segment_name` (``obu.ticks.000003.jsonl``); when the OBU's files pass N MB the
+oldest segment but the first is deleted (:mod:`obu.capture`).  The reader reads the
+segments in order and says which are missing.
 
 The join key.  A message is named on both sides by its sender's TemporaryID (8 hex digits),
 its msgCnt and its secMark (:func:`message_key`).  The RVE's schedule gives the sequence
@@ -46,6 +59,7 @@ from catc.bsm import msg_cnt, sec_mark
 
 __all__ = [
     "ENDINGS",
+    "LEGACY",
     "OBU_CONFIG",
     "OBU_COUNTERS",
     "OBU_END",
@@ -60,6 +74,7 @@ __all__ = [
     "RVE_PCAPNG",
     "RVE_SCHEDULE",
     "RVE_TRUTH",
+    "SEGMENTED",
     "end",
     "event",
     "failed",
@@ -73,9 +88,11 @@ __all__ = [
     "rve_config",
     "scheduled",
     "scheduled_key",
+    "segment_name",
     "sent",
     "settings",
     "tick",
+    "track_columns",
     "track_rows",
     "truth",
 ]
@@ -90,11 +107,25 @@ RVE_END = "rve.end.json"
 OBU_CONFIG = "obu.config.json"
 OBU_END = "obu.end.json"
 OBU_COUNTERS = "obu.counters.json"
-OBU_RX = "obu.rx.jsonl"
+OBU_RX = "obu.rx.jsonl.gz"
 OBU_TICKS = "obu.ticks.jsonl"
-OBU_TRACKS = "obu.tracks.jsonl"
+OBU_TRACKS = "obu.tracks.bin"
 OBU_EVENTS = "obu.events.jsonl"
 OBU_MBR = "obu.mbr.jsonl"
+#: The OBU's files written per tick, in segments under ``--capture-max-mb``.
+SEGMENTED = (OBU_RX, OBU_TICKS, OBU_TRACKS, OBU_EVENTS, OBU_MBR)
+#: What captures written before 2026-11-27 called two of them (the reader reads both).
+LEGACY = {OBU_RX: "obu.rx.jsonl", OBU_TRACKS: "obu.tracks.jsonl"}
+
+
+def segment_name(name: str, k: int) -> str:
+    """The file of segment ``k`` of ``name`` (one of :data:`SEGMENTED`): the name itself
+    for segment 0, else the segment number before the extension
+    (``obu.rx.000002.jsonl.gz``)."""
+    if k == 0:
+        return name
+    daemon, stream, ext = name.split(".", 2)
+    return f"{daemon}.{stream}.{k:06d}.{ext}"
 
 MessageKey = tuple[str, int, int]
 
@@ -115,7 +146,7 @@ def scheduled_key(record: dict) -> MessageKey:
 
 
 def received_key(record: dict) -> MessageKey:
-    """:func:`message_key` of an ``obu.rx.jsonl`` record (the decoded msgCnt and secMark;
+    """:func:`message_key` of an ``obu.rx.jsonl.gz`` record (the decoded msgCnt and secMark;
     None where the frame did not decode)."""
     return (record.get("id"), record.get("msgCnt"), record.get("sec_mark"))
 
@@ -225,7 +256,7 @@ def received(rx_unix: float, channel: str, data: bytes, status: str, *,
              sender: tuple[int, int, int | None] | None = None, verdict: str | None = None,
              tick: float | None = None, decided_unix: float | None = None
              ) -> dict[str, Any]:
-    """One received frame (``obu.rx.jsonl``) and what became of it: ``status`` is ``ok``
+    """One received frame (``obu.rx.jsonl.gz``) and what became of it: ``status`` is ``ok``
     (stepped at ``tick``, decided at ``decided_unix``), ``unticked`` (received after the
     last host frame), ``rejected`` (failed IEEE 1609.2 verification under enforce),
     ``quarantined`` (its sender is in misbehavior quarantine) or the decode error's reason.
@@ -264,7 +295,7 @@ def tick(snap: Any, host_sec_mark: int, step_ms: float, decided_unix: float
 
 
 def track_rows(snap: Any, host_sec_mark: int) -> list[dict[str, Any]]:
-    """Every tracked RV of ``snap`` (``obu.tracks.jsonl``, and the live view's rows): the
+    """Every tracked RV of ``snap`` as rows (``obu.tracks.bin`` read back, the live view): the
     estimate (ENU m, m/s, degrees), where it came from (``source``: the predictor or
     ``bsm``), its age and freshness, lane, zone now and at the prediction horizon
     (``[ahead, lateral code, direction code]``, :mod:`catc.classify`), and the path-frame
@@ -284,6 +315,20 @@ def track_rows(snap: Any, host_sec_mark: int) -> list[dict[str, Any]]:
             "predicted_y": round(float(snap.pred_y[i]), 7),
             "predicted_zone": [bool(pz.ahead[i]), int(pz.lateral[i]), int(pz.direction[i])]})
     return rows
+
+
+def track_columns(snap: Any) -> dict[str, Any]:
+    """Every tracked RV of ``snap`` as columns (``obu.tracks.bin``, one block per tick,
+    :class:`hil.capture.tracks.TrackWriter`): the fields of :func:`track_rows`, the zones
+    split into ``ahead, lateral, direction`` and ``p_ahead, p_lateral, p_direction``.  The
+    file keeps what :func:`track_rows` rounds to: positions to 1e-7 m, the rest to 1e-3."""
+    z, pz = snap.zone, snap.predicted_zone
+    return {"id": snap.ids, "x": snap.x, "y": snap.y, "speed": snap.speed,
+            "heading": snap.heading, "source": snap.source, "age": snap.age,
+            "fresh": snap.fresh, "lane": snap.lane, "ahead": z.ahead, "lateral": z.lateral,
+            "direction": z.direction, "s": z.s, "d": z.d, "predicted_x": snap.pred_x,
+            "predicted_y": snap.pred_y, "p_ahead": pz.ahead, "p_lateral": pz.lateral,
+            "p_direction": pz.direction}
 
 
 def event(e: Any) -> dict[str, Any]:

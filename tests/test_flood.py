@@ -127,3 +127,6 @@ def test_a_flood_at_the_host_port_changes_nothing(tmp_path, clean):
     # frame may be waiting for its tick when the run ends)
     told = c["ticks"] + c["host_rejected"] + c["decode_errors"]
     assert 0 <= c["frames_host"] - told <= 1, c
+    # and the score counts them apart from garbage, as the capture recorded them
+    refused = flooded["frames"]["host_refused"]
+    assert refused == {r: c[f"host_{r}"] for r in REASONS if c.get(f"host_{r}")}, refused

@@ -53,3 +53,8 @@ def test_a_stalled_obu_reports_its_lag_and_the_score_agrees(tmp_path):
     for q in ("p50", "p99"):
         assert c[f"lag_ms_{q}"] == pytest.approx(lat[q], rel=0.10), (q, c, lat)
     assert c["lag_ms_max"] == pytest.approx(lat["max"], rel=0.10)
+    # and the score says the OBU fell behind, on its first line
+    assert s["late"]["lagging"] and s["late"]["messages"] > 0, s["late"]
+    text = subprocess.run([PY, "-m", "captures.cli", "score", str(tmp_path)],
+                          capture_output=True, text=True, timeout=120)
+    assert text.returncode == 0 and text.stdout.startswith("LAGGING: "), text.stdout

@@ -72,6 +72,9 @@ the OBU did not tick whole is incomplete: every figure says its coverage, and th
 status is 3 unless --partial."""
 
 
+#: The tick period (ms): a message decided later than this after it was sent is late.
+TICK_MS = 100.0
+
 #: The exit status of ``captures score`` on an incomplete run (without ``--partial``).
 INCOMPLETE = 3
 
@@ -193,13 +196,15 @@ def _frames(cap: Capture, names: dict[str, str], sent: dict) -> dict:
     as an RV message (a copy with its count or secMark flipped, the host's own frame
     heard on the RV channel); ``phantom`` an accepted frame of an id the RVE never sent;
     ``garbage`` (decode errors, by reason), ``rejected``, ``quarantined``, ``unticked``.
-    The RV channel's frames are the sum of these; ``host`` counts the host channel's
-    decode errors."""
+    The RV channel's frames are the sum of these; ``host_errors`` counts the host
+    channel's decode errors, ``host_refused`` its frames the OBU did not believe, by
+    reason (:class:`obu.host.HostGate`)."""
     counts = dict.fromkeys(("received", "duplicate", "unmatched", "phantom", "rejected",
                             "quarantined", "unticked"), 0)
     garbage: Counter = Counter()
     security: Counter = Counter()
     host_errors = 0
+    host_refused: Counter = Counter()  # host frames the host gate did not believe
     seen: set = set()
     latency = array("d")
     for r in cap.iter_rx():
@@ -207,7 +212,9 @@ def _frames(cap: Capture, names: dict[str, str], sent: dict) -> dict:
         if r.get("verdict"):
             security[r["verdict"]] += 1
         if r.get("channel") != "rv":
-            if status not in _STATUSES:
+            if (status or "").startswith("host_"):
+                host_refused[status[5:]] += 1
+            elif status not in _STATUSES:
                 garbage[status] += 1
                 host_errors += 1
             continue
@@ -230,6 +237,7 @@ def _frames(cap: Capture, names: dict[str, str], sent: dict) -> dict:
         else:
             counts["phantom"] += 1
     return {**counts, "garbage": dict(garbage), "host_errors": host_errors,
+            "host_refused": dict(host_refused),
             "security": dict(security), "latency_s": np.array(latency)}
 
 
@@ -307,6 +315,10 @@ def score(directory: Path) -> dict:
         "latency_ms": {"p50": round(float(np.percentile(lat_ms, 50)), 3),
                        "p99": round(float(np.percentile(lat_ms, 99)), 3),
                        "max": round(float(lat_ms.max()), 3)} if len(lat_ms) else None,
+        # the OBU fell behind: decisions over a tick period after the message was sent
+        "late": {"messages": int((lat_ms > TICK_MS).sum()),
+                 "share": round(float((lat_ms > TICK_MS).mean()), 4) if len(lat_ms) else 0.0,
+                 "lagging": bool(len(lat_ms) and np.percentile(lat_ms, 99) > TICK_MS)},
         "warnings": dict(Counter(f"{e['app']}" for e in events if e["kind"] == "start")),
         "events": events,
         # accepted frames of ids the RVE never sent
@@ -486,9 +498,16 @@ def table(r: dict) -> str:
         lines.append(f"IEEE 1609.2: verified {sec.get('ok', 0)}, rejected {r['rejected']}"
                      + "".join(f", {k} {v}" for k, v in sorted(sec.items()) if k != "ok"))
     if r["latency_ms"]:
-        lat = r["latency_ms"]
+        lat, late = r["latency_ms"], r["late"]
         lines.append(f"latency send -> decision: p50 {lat['p50']} ms, p99 {lat['p99']} ms, "
                      f"max {lat['max']} ms")
+        if late["lagging"]:
+            lines.insert(0, f"LAGGING: {100 * late['share']:.1f} % of the messages were "
+                            f"decided over a tick period ({TICK_MS:g} ms) after they were "
+                            f"sent (p99 {lat['p99']} ms): the OBU fell behind real time")
+    if r["frames"]["host_refused"]:
+        lines.append("host frames not believed: " + ", ".join(
+            f"{k} {v}" for k, v in sorted(r["frames"]["host_refused"].items())))
     for kind, a in r.get("attacks", {}).items():
         if "detection" in a:
             d = a["detection"]

@@ -30,12 +30,15 @@ from catc.mbd.config import MbdConfig
 from catc.mbd.geometry import RAD, dlon, iou, max_min_dist
 from catc.mbd.state import Senders
 
-__all__ = ["BASELINE_CHECKS", "CHECKS", "TABLE", "TRACK_CHECKS", "Check", "Detection",
-           "Observation", "Pair", "pairs", "ratio"]
+__all__ = ["BASELINE_CHECKS", "CHECKS", "ID_CONFLICT", "TABLE", "TRACK_CHECKS", "Check",
+           "Detection", "Observation", "Pair", "pairs", "ratio"]
 
-#: The check names a :class:`Detection` carries.
+#: The check names a :class:`Detection` carries (the checks of :data:`TABLE`) ...
 CHECKS = ("range", "position-consistency", "speed-consistency", "position-speed",
           "sudden-appearance", "frequency", "heading", "sybil", "intersection")
+#: ... and the finding of the identity binding (:mod:`catc.mbd.identity`): a message
+#: under an id another signer holds.
+ID_CONFLICT = "id-conflict"
 
 #: Checks whose failure means the message contradicts its own track: such a message does
 #: not become the sender's reference (one bad message must not poison the next good one).
@@ -57,9 +60,9 @@ Finding = tuple[float, dict]
 class Detection:
     """One failed check of one message."""
 
-    #: One of :data:`CHECKS`.
+    #: One of :data:`CHECKS`, or :data:`ID_CONFLICT`.
     check: str
-    #: The TemporaryID of the sender.
+    #: The TemporaryID the message claims.
     suspect: int
     #: The receive time (s, the caller's clock).
     t: float
@@ -70,6 +73,9 @@ class Detection:
     evidence: dict = field(default_factory=dict)
     #: The second id for sybil / intersection (None: the host).
     other: int | None = None
+    #: Whom the evidence attaches to: the HashedId8 of the certificate that signed the
+    #: message (None: unsigned, the id ``suspect`` itself).
+    signer: bytes | None = None
 
 
 class Observation:
@@ -77,6 +83,10 @@ class Observation:
     Observation for every message; the checks read it (and the Sybil check counts in
     ``sybil``).
 
+    * Its signer: ``key``, whom the evidence attaches to (the signer's HashedId8, or
+      ``tid`` when unsigned), ``conflict``, the other signer holding ``tid`` (None: none;
+      when set, the fields below are not filled: the message goes no further), and
+      ``twin``, another id the signer sends under at the same time (None: none).
     * The message: ``bsm`` itself, ``tid``, ``t`` (receive time, s), ``sm`` (secMark),
       ``lat``, ``lon``, ``speed``, ``heading`` (deg, in [0, 360)), ``length``, ``width``
       (None when unavailable), and ``kx``/``ky``, metres per degree at its latitude.
@@ -97,10 +107,10 @@ class Observation:
       the sender's footprint: heading ``h`` (rad), ``sin_h``, ``cos_h`` and diagonal
       ``diag`` (m)."""
 
-    __slots__ = ("acc", "ahead", "anchor_i", "bsm", "cos_h", "diag", "dt", "dtr", "follows", "h",
-                 "heading", "host_d", "host_heading", "hx", "hy", "kx", "ky", "lat", "length",
-                 "lon", "rdist", "ref", "rx", "ry", "senders", "sin_h", "sm", "speed", "st",
-                 "sybil", "t", "tid", "ts", "width")
+    __slots__ = ("acc", "ahead", "anchor_i", "bsm", "conflict", "cos_h", "diag", "dt", "dtr",
+                 "follows", "h", "heading", "host_d", "host_heading", "hx", "hy", "key", "kx",
+                 "ky", "lat", "length", "lon", "rdist", "ref", "rx", "ry", "senders", "sin_h",
+                 "sm", "speed", "st", "sybil", "t", "tid", "ts", "twin", "width")
 
     def __init__(self, senders: Senders) -> None:
         self.senders = senders
@@ -208,9 +218,10 @@ def _continues(o: Observation, c: MbdConfig) -> bool:
 
 def beacon_frequency(o: Observation, c: MbdConfig) -> Finding | None:
     """F2MD BeaconFrequencyCheck, on secMark: messages closer in time than
-    ``min_interval_s`` (or not after the last one, beyond the reorder window: a replay);
-    and the sender's clock running ahead of the receive clock (a forged or replayed
-    timestamp)."""
+    ``min_interval_s`` (two messages with one secMark included); and the sender's clock
+    running ahead of the receive clock (a forged timestamp).  A message older than the
+    sender's last beyond the reorder window never gets here: it is a replay, whoever
+    sent it, and the detector drops it without a finding."""
     ahead = o.ahead
     if ahead is None:
         return None

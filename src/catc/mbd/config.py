@@ -141,9 +141,12 @@ class MbdConfig:
     #: ... in this many consecutive messages of the younger id.
     sybil_messages: int = 5
     # -- quarantine (ours) -----------------------------------------------------------------
-    #: A sender is quarantined when ``quarantine_k`` of its messages fail within
-    #: ``quarantine_window_s``, or at once on a strong finding (sudden appearance inside
-    #: the safety range, intersection, Sybil); a single GNSS glitch is one failed message.
+    #: Evidence attaches to the signer (the HashedId8 of the certificate that signed the
+    #: message; the TemporaryID when unsigned).  It is quarantined when ``quarantine_k`` of
+    #: its messages fail within ``quarantine_window_s`` (a message counts once, however
+    #: many checks it fails: a single GNSS glitch is one), or at once on a strong finding
+    #: (sudden appearance inside the safety range, intersection, Sybil, an id another
+    #: signer holds).
     quarantine_k: int = 3
     quarantine_window_s: float = 2.0
     #: How long (s) from the last detection a quarantine lasts; renewed by new detections.
@@ -151,6 +154,16 @@ class MbdConfig:
     #: A sender quarantined on a strong finding (a fabricated vehicle) stays quarantined
     #: while it keeps transmitting: each of its messages renews the quarantine.
     sticky_strong: bool = True
+    # -- identity (ours) -------------------------------------------------------------------
+    #: A TemporaryID belongs to the first signer heard with it until that signer has not
+    #: used it for this long (s); another signer claiming it before is an id conflict.  A
+    #: pseudonym certificate is used for minutes and the TemporaryID changes with it (SAE
+    #: J2945/1), so an id silent for 5 min is not coming back.  Ours.
+    id_hold_s: float = 300.0
+    #: Messages remembered per sender to recognise an exact copy (msgCnt, secMark and
+    #: position) of one already heard: 3.2 s at 10 Hz, past the 2 s generationTime window
+    #: of the verifier; an older copy is older than the reorder window, dropped too.
+    copies_kept: int = 32
     #: Size (m) of the grid cells that find neighbours for intersection and Sybil.
     grid_cell_m: float = 50.0
 
@@ -163,6 +176,8 @@ class MbdConfig:
         if not self.intersection_threshold < 1.0:
             raise ValueError("MbdConfig.intersection_threshold must be below 1 "
                              f"(an overlap ratio), got {self.intersection_threshold}")
-        if not isinstance(self.quarantine_k, int) or not isinstance(self.sybil_messages, int):
-            raise ValueError("MbdConfig.quarantine_k and sybil_messages are counts (int)")
+        if not all(isinstance(x, int) for x in (self.quarantine_k, self.sybil_messages,
+                                                 self.copies_kept)):
+            raise ValueError("MbdConfig.quarantine_k, sybil_messages and copies_kept are "
+                             "counts (int)")
 

@@ -1,6 +1,7 @@
 """What the detector remembers between messages, bounded: each sender's accepted messages
-(an LRU of at most ``max_senders`` TemporaryIDs), the grid that finds a sender's
-neighbours, the network's mean message interval, and time on the senders' clocks.
+(an LRU of at most ``max_senders`` TemporaryIDs) and the last messages it heard from it
+(to recognise copies), the grid that finds a sender's neighbours, the network's mean
+message interval, and time on the senders' clocks.
 
 A sender's clock is its secMark (ms within the UTC minute, wrapped at 60000); ``t`` is
 the caller's receive clock.
@@ -43,10 +44,11 @@ class Msg:
 
 
 class Sender:
-    """What the detector keeps of one TemporaryID."""
+    """What the detector keeps of one TemporaryID (its messages; the evidence against it
+    is its signer's, :class:`catc.mbd.quarantine.Principal`)."""
 
-    __slots__ = ("acc", "cell", "first_t", "heard_t", "hist", "min_off", "strikes", "strong",
-                 "sybil", "tid")
+    __slots__ = ("acc", "cell", "copies", "first_t", "heard_t", "hist", "min_off", "sybil",
+                 "tid")
 
     def __init__(self, tid: int, t: float) -> None:
         self.tid = tid
@@ -55,8 +57,8 @@ class Sender:
         self.acc: Msg | None = None  # the last accepted message
         self.hist: list[Msg] = []  # accepted messages back to the anchor
         self.min_off = math.inf  # lowest (receive time - sender time) so far
-        self.strikes: list[float] = []  # receive times of failed messages in the window
-        self.strong = False  # quarantined on a strong finding
+        #: the last messages heard, (msgCnt, secMark, lat, lon), oldest first
+        self.copies: dict[tuple, None] = {}
         self.sybil: dict[int, int] = {}  # other id -> consecutive co-moving messages
         self.cell: tuple[int, int] | None = None
 
@@ -98,6 +100,12 @@ class Senders:
             _, old = senders.popitem(last=False)
             self._ungrid(old)
         return st
+
+    def forget(self, tid: int) -> None:
+        """Drop the state of ``tid`` (its next message starts a new one)."""
+        st = self.by_id.pop(tid, None)
+        if st is not None:
+            self._ungrid(st)
 
     def _ungrid(self, st: Sender) -> None:
         if st.cell is not None:

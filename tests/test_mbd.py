@@ -22,6 +22,7 @@ from catc.bsm import BSM, TransmissionState
 from catc.channel import ChannelConfig
 from catc.mbd import CHECKS, Detection, MbdConfig, MisbehaviorDetector, local_offset_m
 from catc.mbd.geometry import iou, max_min_dist, scale
+from catc.mbd.quarantine import is_strong
 from catc.replay import plan, temp_id
 from hil.datasets import load_table
 from tests.conftest import shared_path
@@ -637,6 +638,35 @@ def test_a_pseudonym_change_binds_the_new_id_to_the_new_certificate(clean_plan):
     assert det.observe(late, 40.0, None, None, signer=b"someone!") == []
 
 
+def test_weak_findings_accumulate_to_quarantine_a_fabricated_id(table, clean_plan):
+    """Issue 28: a fabricated id with weak findings only (here a sudden appearance 80 m
+    ahead of the host, beyond its safety range, and a heading 90 degrees off at 12 s and
+    at 16 s) never reached three failures in 2 s.  Its evidence now adds up over F2MD's
+    10 s window: quarantined at the third."""
+    ghost = 0x6A7A0100
+    extra = []
+    for k in range(100):  # 8-18 s, 80 m ahead of the host at its speed
+        t = 8.0 + 0.1 * k
+        lat, lon, hdg, v = _host_at(table, t)
+        m = BSM(msg_cnt=k % 128, temp_id=ghost, sec_mark=round(t * 1000) % 60000,
+                lat=lat, lon=lon, speed=v, heading=hdg, length=4.5, width=1.8)
+        m = _shift(m, 80 * math.sin(math.radians(hdg)), 80 * math.cos(math.radians(hdg)))
+        if k in (40, 80):
+            m = dataclasses.replace(m, heading=(hdg + 90.0) % 360.0)
+        extra.append((t, m))
+    det, found = _run(clean_plan, extra=extra[:80])  # to 15.9 s: two failures
+    assert [(d.check, round(d.t, 1)) for d in found] == [
+        ("sudden-appearance", 8.0), ("heading", 12.0)]
+    assert not is_strong(found[0], det.config)  # 80 m: outside the safety range
+    assert not det.quarantined(ghost, 15.9) and not det.counters["quarantines"]
+    det, found = _run(clean_plan, extra=extra)
+    assert [(d.check, round(d.t, 1)) for d in found][2:] == [("heading", 16.0)]
+    assert det.quarantined(ghost, 16.05) and det.counters["quarantines"] == 1
+    old = MisbehaviorDetector(MbdConfig(quarantine_window_s=2.0))  # the rule before
+    _run(clean_plan, det=old, extra=extra)
+    assert not old.quarantined(ghost, 16.05) and not old.counters["quarantines"]
+
+
 def _insider_ids(table, ids, starts, seconds=1.0):
     """Messages of ``ids`` of one insider certificate, ``ids[j]`` from ``starts[j]`` s for
     ``seconds``, 70 + 30 j m ahead of the host at its speed, in the lane on its left:
@@ -654,6 +684,24 @@ def _insider_ids(table, ids, starts, seconds=1.0):
             extra.append((t, m))
             signers[id(m)] = insider
     return extra, signers
+
+
+def test_weak_findings_of_one_signer_add_up_across_its_ids(table, clean_plan):
+    """Ids of one insider certificate, one after the other, each a weak sudden
+    appearance only: their evidence is the signer's, and the third quarantines it with
+    every id it holds.  Under three certificates they stay three weak findings."""
+    insider, ids = b"insider!", (0x6A7A0001, 0x6A7A0002, 0x6A7A0003)
+    extra, signers = _insider_ids(table, ids, (8.0, 10.0, 12.0))
+    det, found = _run_signed(clean_plan, extra=extra, signers=signers)
+    assert [(d.check, d.suspect, d.signer, d.t) for d in found] == [
+        ("sudden-appearance", tid, insider, t) for tid, t in zip(ids, (8.0, 10.0, 12.0),
+                                                                 strict=True)]
+    assert not any(is_strong(d, det.config) for d in found)
+    assert det.quarantined(ids[2], 12.05, insider) and det.quarantined(ids[0], 12.05)
+    assert det.ids_of(ids[2], 12.05, insider) == set(ids)
+    assert det.counters["quarantines"] == 1
+    det, _ = _run_signed(clean_plan, extra=extra)
+    assert not det.counters["quarantines"]
 
 
 def test_one_certificate_under_two_ids_at_once_is_a_sybil(table, clean_plan):

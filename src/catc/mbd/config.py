@@ -146,9 +146,12 @@ class MbdConfig:
     #: its messages fail within ``quarantine_window_s`` (a message counts once, however
     #: many checks it fails: a single GNSS glitch is one), or at once on a strong finding
     #: (sudden appearance inside the safety range, intersection, Sybil, an id another
-    #: signer holds).
+    #: signer holds).  The window is F2MD's AggregationApp's (``deltaTrustTime`` = 10 s,
+    #: F2MDVeinsApp.h: the BSMs of the last 10 s are judged together); in the real data
+    #: here no honest id fails more than one message in any 30 s
+    #: (docs/log/2026-11-27-mbd-signers.md).
     quarantine_k: int = 3
-    quarantine_window_s: float = 2.0
+    quarantine_window_s: float = 10.0
     #: How long (s) from the last detection a quarantine lasts; renewed by new detections.
     quarantine_s: float = 10.0
     #: A sender quarantined on a strong finding (a fabricated vehicle) stays quarantined

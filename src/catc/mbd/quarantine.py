@@ -8,13 +8,13 @@ that signer holds.
 
 A principal is quarantined when ``quarantine_k`` of its messages fail within
 ``quarantine_window_s`` (a message counts once, however many checks it fails: a single
-GNSS glitch is one failed message), or at
+GNSS glitch is one failed message; weak findings spread over the window add up), or at
 once on a strong finding (:func:`is_strong`: a sudden appearance inside the host's safety
 range, an intersection, a Sybil, an id held by another signer).  The quarantine lasts
 ``quarantine_s`` from the last detection and is renewed by every new one; after a strong
 finding, with ``sticky_strong``, by every message of the principal too (a fabricated
-vehicle does not become real by behaving consistently afterwards).  The rule is ours;
-docs/reference/mbd.md explains it.
+vehicle does not become real by behaving consistently afterwards).  The rule is ours, the
+window F2MD's (:class:`~catc.mbd.config.MbdConfig`); docs/reference/mbd.md explains it.
 """
 
 from __future__ import annotations

@@ -184,6 +184,8 @@ class MisbehaviorDetector:
                         found.append(Detection(name, tid, t, r[0], r[1], p.tid, signer))
             o.st.sybil = o.sybil
 
+        if o.acc is None:
+            self._senders.arrived(t)
         st.heard_t = t
         if o.anchor_i is not None and not (found and any(d.check in TRACK_CHECKS
                                                          for d in found)):

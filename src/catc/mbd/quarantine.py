@@ -10,11 +10,12 @@ A principal is quarantined when ``quarantine_k`` of its messages fail within
 ``quarantine_window_s`` (a message counts once, however many checks it fails: a single
 GNSS glitch is one failed message; weak findings spread over the window add up), or at
 once on a strong finding (:func:`is_strong`: a sudden appearance inside the host's safety
-range, an intersection, a Sybil, an id held by another signer).  The quarantine lasts
-``quarantine_s`` from the last detection and is renewed by every new one; after a strong
-finding, with ``sticky_strong``, by every message of the principal too (a fabricated
-vehicle does not become real by behaving consistently afterwards).  The rule is ours, the
-window F2MD's (:class:`~catc.mbd.config.MbdConfig`); docs/reference/mbd.md explains it.
+range and in its clear line of sight, an intersection, a Sybil, an id held by another
+signer).  The quarantine lasts ``quarantine_s`` from the last detection and is renewed by
+every new one; after a strong finding, with ``sticky_strong``, by every message of the
+principal too (a fabricated vehicle does not become real by behaving consistently
+afterwards).  The rule is ours, the window F2MD's (:class:`~catc.mbd.config.MbdConfig`);
+docs/reference/mbd.md explains it.
 """
 
 from __future__ import annotations
@@ -31,10 +32,12 @@ __all__ = ["Principal", "Quarantine", "is_strong"]
 def is_strong(d: Detection, c: MbdConfig) -> bool:
     """Whether ``d`` quarantines its sender at once: an intersection, a Sybil, an id
     another signer holds, or a sudden appearance inside the host's safety range (where a
-    ghost can trigger a forward collision warning)."""
+    ghost can trigger a forward collision warning) in the host's clear line of sight (one
+    behind another vehicle may have been in its radio shadow)."""
     check = d.check
     return check in ("intersection", "sybil", "id-conflict") or (
-        check == "sudden-appearance" and d.evidence["distance_m"] < c.sa_safety_range_m)
+        check == "sudden-appearance" and d.evidence["distance_m"] < c.sa_safety_range_m
+        and d.evidence["behind"] is None)
 
 
 class Principal:

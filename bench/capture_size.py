@@ -17,7 +17,7 @@ For each run: the capture's size (every ``rve.*`` and ``obu.*`` file, rotated se
 included) and its growth in MB per minute of run, by file; then ``captures score DIR
 --json --partial`` as a child process, its wall time and its peak RSS (``os.wait4``'s
 ``ru_maxrss`` of that child alone), and the score's counts (sent, received, phantoms,
-latency p50).
+latency p50/p99 beside the OBU's own lag p50/p99, which must agree).
 
     python bench/capture_size.py [--json] [--seconds 60] [--ids 10000] [--storm-rate 1000]
                                  [--rvs 16] [--predictor ca] [--capture-max-mb N]
@@ -208,12 +208,18 @@ def run_once(root: Path, name: str, fcd: Path, args: argparse.Namespace, storm: 
            "obu": {k: counters.get(k) for k in ("frames", "frames_rv", "ticks",
                                                   "cam_confirmed", "cam_table_full",
                                                   "cam_displaced", "tick_ms_p99",
-                                                  "transport_frames")},
+                                                  "transport_frames", "lag_ms_p50",
+                                                  "lag_ms_p99", "deadline_misses")},
            "score_s": round(score_s, 2), "score_rss_mb": round(rss_mb, 1)}
     if score is not None:
         row["score"] = {k: score.get(k) for k in ("sent", "received", "dropped", "rejected",
                                                     "unticked", "pte95_m", "fcw_accuracy")}
         row["score"]["latency_p50_ms"] = (score.get("latency_ms") or {}).get("p50")
+        row["score"]["latency_p99_ms"] = (score.get("latency_ms") or {}).get("p99")
+        # the OBU's own lag (arrival -> decision) beside the score's latency (send ->
+        # decision): they must agree (issue 27: within 10 %)
+        row["score"]["obu_lag_p50_ms"] = counters.get("lag_ms_p50")
+        row["score"]["obu_lag_p99_ms"] = counters.get("lag_ms_p99")
         row["score"]["phantom_tracks"] = (score.get("phantom") or {}).get("tracks")
         row["score"]["phantom_received"] = score.get("phantom_received")
         row["score"]["coverage"] = (score.get("run") or {}).get("coverage")
@@ -292,7 +298,7 @@ def main() -> int:
     for label, key in (("score RSS MB", "score_rss_mb"), ("score s", "score_s")):
         print(f"{label:<22}" + "".join(f"{r[key]:>10}" for r in rows))
     for key in ("sent", "received", "phantom_received", "phantom_tracks", "latency_p50_ms",
-                "pte95_m", "coverage"):
+                "obu_lag_p50_ms", "latency_p99_ms", "obu_lag_p99_ms", "pte95_m", "coverage"):
         print(f"{key:<22}" + "".join(f"{(r.get('score') or {}).get(key)!s:>10}"
                                      for r in rows))
     for r in rows:

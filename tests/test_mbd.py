@@ -21,7 +21,8 @@ from catc import geo
 from catc.bsm import BSM, TransmissionState
 from catc.channel import ChannelConfig
 from catc.mbd import CHECKS, Detection, MbdConfig, MisbehaviorDetector, local_offset_m
-from catc.mbd.geometry import iou, max_min_dist, scale
+from catc.mbd.geometry import blocks, iou, max_min_dist, scale
+from catc.mbd.quarantine import is_strong
 from catc.replay import plan, temp_id
 from hil.datasets import load_table
 from tests.conftest import shared_path
@@ -159,6 +160,16 @@ def test_footprint_overlap_and_the_kinematic_envelope():
     assert lo == pytest.approx(69.0 - 2.5) and 69.0 < hi <= 70.0
 
 
+def test_a_footprint_blocks_a_line_of_sight_it_crosses():
+    car = (0.0, 10.0, 0.0, 4.5, 1.8)  # 10 m north, heading north
+    assert blocks(0.0, 0.0, 0.0, 30.0, car)  # straight through it
+    assert blocks(0.0, 0.0, 0.8, 30.0, car)  # grazing its side
+    assert not blocks(0.0, 0.0, 6.0, 30.0, car)  # past its side
+    assert not blocks(0.0, 0.0, 0.0, 7.0, car)  # ends before it
+    assert blocks(-5.0, 10.0, 5.0, 10.0, car) and blocks(-5.0, 10.0, 5.0, 10.0,
+                                                         (0.0, 10.0, math.pi / 2, 4.5, 1.8))
+
+
 # --- configuration ----------------------------------------------------------------------
 
 
@@ -224,10 +235,14 @@ def test_real_gnss_platoons_raise_nothing_but_late_starters():
     every car so that the intersection and Sybil checks run too.
 
     The reader splits a vehicle's track at a GNSS gap into a new id (``NAME#2``) that
-    continues after seconds of silence: a pseudonym change, which is not flagged.  One
-    log begins 8 s into its file, 65 m from the host: to a receiver, a car switching its
-    radio on nearby, which is what F2MD's sudden appearance flags.  That finding is
-    reported but, outside the host's safety range, quarantines nobody."""
+    continues after seconds of silence: a pseudonym change, which is not flagged (at
+    1 Hz and 30 % loss too, where the old id's last message and the new one's first are
+    6 s apart).  Two logs begin late: one 8 s into its file, 65 m from the host, one
+    1.6 s in, 35 m ahead of the host behind the car in between: to a receiver, cars
+    switching their radios on nearby, which is what F2MD's sudden appearance flags.  Those
+    findings are reported but, outside the host's safety range or in the radio shadow of
+    another car, quarantine nobody.  (Before issue 28 a blind 2.1 s warm-up hid the
+    second one.)"""
     from hil.datasets import load
 
     folder = shared_path("openacc-zalazone")
@@ -243,15 +258,17 @@ def test_real_gnss_platoons_raise_nothing_but_late_starters():
         def sized(_v, m):
             return dataclasses.replace(m, length=4.6, width=1.8)
 
-        for channel in (ChannelConfig(), ChannelConfig(per=0.5)):
+        for channel in (ChannelConfig(), ChannelConfig(per=0.5),
+                        ChannelConfig(rate_hz=1.0, per=0.3)):
             det, found = _run(plan(tab, channel, 1), modify=sized)
             for d in found:
                 assert d.check == "sudden-appearance", (path.name, d)
-                assert starts[d.suspect] > t0 + 2.1  # a log that starts late
-                assert d.evidence["distance_m"] > d.evidence["safety_range_m"]
+                assert starts[d.suspect] > t0 + 1.5  # a log that starts late
+                assert d.evidence["distance_m"] > d.evidence["safety_range_m"] \
+                    or d.evidence["behind"] is not None
                 late.append((path.name, d.suspect))
             assert det.counters["quarantines"] == 0
-    assert len(set(late)) <= 1
+    assert len(set(late)) == 2
 
 
 @pytest.mark.parametrize("name", ["cut-in", "intersection"])
@@ -397,18 +414,32 @@ def test_a_stuck_speed_fails_position_speed(clean_plan):
     assert det.quarantined(sid, 20.0)
 
 
-def test_a_replayed_old_message_fails_frequency(clean_plan):
+def test_a_replay_is_dropped_without_evidence_against_the_replayed_vehicle(clean_plan):
+    """A replay needs no key: the copies of the leader's frames 3 s late, and frames it
+    sent 3 s ago that this receiver had missed, say nothing of the leader's behaviour.
+    They are dropped (``dropped``: copy, stale) and raise no finding.  (Before issue 28
+    they failed ``frequency`` against the leader, three of them quarantined it, and the
+    OBU dropped its genuine frames with it.)"""
     frames = _bsms_of(clean_plan, "lead")
     old = [m for t, m in frames if 7.0 <= t < 8.0]
-    extra = [(10.0 + 0.1 * k + 0.05, m) for k, m in enumerate(old)]  # 3 s late, 1 s long
-    _, found = _run(clean_plan, extra=extra)
+    missed = [m for t, m in frames if 5.0 <= t < 6.0]
     lead = temp_id("lead")
-    assert {d.suspect for d in found} == {lead}
-    assert _checks(found) == {"frequency"}
-    assert len(found) == len(old)  # every replayed frame, none of the genuine ones
-    assert all(d.evidence["interval_s"] == pytest.approx(-3.0, abs=0.1) for d in found)
-    # the genuine stream was never poisoned
-    assert all(10.0 <= d.t < 11.1 for d in found)
+
+    def lose(v, m):  # the receiver missed the leader's frames of 5-6 s
+        return None if m in missed else m
+
+    extra = [(10.0 + 0.1 * k + 0.05, m) for k, m in enumerate(old)]  # 3 s late, 1 s long
+    extra += [(9.0 + 0.1 * k + 0.05, m) for k, m in enumerate(missed)]
+    det = MisbehaviorDetector()
+    dropped = []
+    for t, m, hlat, hlon in _stream(clean_plan, extra=extra, modify=lose):
+        assert det.observe(m, t, hlat, hlon) == []
+        if det.dropped:
+            dropped.append((m.sec_mark, det.dropped))
+    assert dropped == [(m.sec_mark, "stale") for m in missed] \
+        + [(m.sec_mark, "copy") for m in old]
+    assert det.counters == {"copy": len(old), "stale": len(missed)}
+    assert not det.quarantined(lead, 11.0)
 
 
 def test_a_replay_from_a_minute_ago_fails_on_the_clock(clean_plan):
@@ -541,6 +572,227 @@ def test_a_speed_step_fails_speed_consistency():
                                                        lat=46.9 + 60.4 / k), 3.1, None, None)
             if d.check == "speed-consistency" and "speed_mps" in d.evidence]
     assert d.evidence["limit_mps"] == det.config.max_speed_mps
+
+
+# --- identity: ids bound to signers ----------------------------------------------------
+
+
+def _cert(tid: int) -> bytes:
+    """The HashedId8 of the pseudonym certificate each honest id is signed with here."""
+    return b"cert" + tid.to_bytes(4, "big")
+
+
+def _run_signed(the_plan, det=None, signers=None, **kw):
+    """:func:`_run` with every message signed: by ``signers[id(bsm)]`` for those given,
+    else by its id's own certificate (:func:`_cert`)."""
+    det = det or MisbehaviorDetector()
+    signers = signers or {}
+    found: list[Detection] = []
+    for t, m, hlat, hlon in _stream(the_plan, **kw):
+        found += det.observe(m, t, hlat, hlon, signer=signers.get(id(m), _cert(m.temp_id)))
+    return det, found
+
+
+def _on_host(table, tid, t, t_host):
+    """A BSM of ``tid`` at ``t`` placed where the host was at ``t_host``."""
+    lat, lon, hdg, v = _host_at(table, t_host)
+    return BSM(msg_cnt=5, temp_id=tid, sec_mark=round(t * 1000) % 60000, lat=lat, lon=lon,
+               speed=v, heading=hdg, length=5.0, width=1.8)
+
+
+def test_a_second_signer_claiming_an_id_is_the_suspect_not_its_holder(table, clean_plan):
+    """Issue 28: one correctly signed frame of an insider pseudonym claiming the leader's
+    id, on top of the host, quarantined the leader for the rest of the run.  Bound to the
+    certificate that signs it, the id is the leader's: the frame is an id conflict, its
+    signer the suspect (quarantined at once), and the leader's frames flow on."""
+    lead, thief = temp_id("lead"), b"insider!"
+    bad = _on_host(table, lead, 10.05, 10.0)
+    det, found = _run_signed(clean_plan, extra=[(10.05, bad)], signers={id(bad): thief})
+    (d,) = found
+    assert d.check == "id-conflict" and d.suspect == lead and d.signer == thief
+    assert d.evidence == {"holder": _cert(lead).hex(), "signer": thief.hex()}
+    assert det.quarantined(lead, 10.1, thief) and det.ids_of(lead, 10.1, thief) == {lead}
+    assert not det.quarantined(lead, 10.1, _cert(lead))
+    assert not det.quarantined(lead, 10.1)  # the id's holder, the leader
+    assert det.counters == {"id-conflict": 1, "quarantines": 1}
+    # unsigned, nothing binds the id: whoever claims it gets the leader quarantined
+    det, found = _run(clean_plan, extra=[(10.05, bad)])
+    assert "intersection" in _checks(found) and det.quarantined(lead, 30.0)
+
+
+def test_an_unsigned_message_under_a_held_id_is_a_conflict_too(table, clean_plan):
+    lead = temp_id("lead")
+    bad = _on_host(table, lead, 10.05, 10.0)
+    det, found = _run_signed(clean_plan, extra=[(10.05, bad)], signers={id(bad): None})
+    assert [d.check for d in found] == ["id-conflict"] and found[0].signer is None
+    assert det.dropped is None and not det.quarantined(lead, 10.1, _cert(lead))
+
+
+def test_a_pseudonym_change_binds_the_new_id_to_the_new_certificate(clean_plan):
+    """SCMS changes the certificate and the TemporaryID together: the new id under the
+    new certificate is no conflict, no appearance.  An id falls free ``id_hold_s`` after
+    its holder last used it."""
+    lead = _vehicle(clean_plan, "lead")
+    new_id, new_cert = 0x12345678, b"newcert!"
+    changed: dict[int, bytes] = {}
+
+    def change(v, m):
+        if v == lead and m.sec_mark >= 15_000:
+            m = dataclasses.replace(m, temp_id=new_id)
+            changed[id(m)] = new_cert
+        return m
+
+    det, found = _run_signed(clean_plan, modify=change, signers=changed)
+    assert found == [] and not det.counters
+    assert det.ids_of(new_id, 20.0, new_cert) == {new_id}
+    # the old id, silent since 15 s, is still the old certificate's until id_hold_s
+    late = BSM(msg_cnt=0, temp_id=temp_id("lead"), sec_mark=40_000, lat=46.9, lon=16.9)
+    assert [d.check for d in det.observe(late, 40.0, None, None, signer=b"someone!")] \
+        == ["id-conflict"]
+    det = MisbehaviorDetector(MbdConfig(id_hold_s=10.0))
+    _run_signed(clean_plan, det=det, modify=change, signers=changed)
+    assert det.observe(late, 40.0, None, None, signer=b"someone!") == []
+
+
+def test_weak_findings_accumulate_to_quarantine_a_fabricated_id(table, clean_plan):
+    """Issue 28: a fabricated id with weak findings only (here a sudden appearance 80 m
+    ahead of the host, beyond its safety range, and a heading 90 degrees off at 12 s and
+    at 16 s) never reached three failures in 2 s.  Its evidence now adds up over F2MD's
+    10 s window: quarantined at the third."""
+    ghost = 0x6A7A0100
+    extra = []
+    for k in range(100):  # 8-18 s, 80 m ahead of the host at its speed
+        t = 8.0 + 0.1 * k
+        lat, lon, hdg, v = _host_at(table, t)
+        m = BSM(msg_cnt=k % 128, temp_id=ghost, sec_mark=round(t * 1000) % 60000,
+                lat=lat, lon=lon, speed=v, heading=hdg, length=4.5, width=1.8)
+        m = _shift(m, 80 * math.sin(math.radians(hdg)), 80 * math.cos(math.radians(hdg)))
+        if k in (40, 80):
+            m = dataclasses.replace(m, heading=(hdg + 90.0) % 360.0)
+        extra.append((t, m))
+    det, found = _run(clean_plan, extra=extra[:80])  # to 15.9 s: two failures
+    assert [(d.check, round(d.t, 1)) for d in found] == [
+        ("sudden-appearance", 8.0), ("heading", 12.0)]
+    assert not is_strong(found[0], det.config)  # 80 m: outside the safety range
+    assert not det.quarantined(ghost, 15.9) and not det.counters["quarantines"]
+    det, found = _run(clean_plan, extra=extra)
+    assert [(d.check, round(d.t, 1)) for d in found][2:] == [("heading", 16.0)]
+    assert det.quarantined(ghost, 16.05) and det.counters["quarantines"] == 1
+    old = MisbehaviorDetector(MbdConfig(quarantine_window_s=2.0))  # the rule before
+    _run(clean_plan, det=old, extra=extra)
+    assert not old.quarantined(ghost, 16.05) and not old.counters["quarantines"]
+
+
+def _insider_ids(table, ids, starts, seconds=1.0):
+    """Messages of ``ids`` of one insider certificate, ``ids[j]`` from ``starts[j]`` s for
+    ``seconds``, 70 + 30 j m ahead of the host at its speed, in the lane on its left:
+    ``(extra, signers)`` for :func:`_run_signed`."""
+    insider, extra, signers = b"insider!", [], {}
+    for j, (tid, t0) in enumerate(zip(ids, starts, strict=True)):
+        for k in range(round(seconds * 10)):
+            t = t0 + 0.1 * k
+            lat, lon, hdg, v = _host_at(table, t)
+            m = BSM(msg_cnt=k, temp_id=tid, sec_mark=round(t * 1000) % 60000, lat=lat,
+                    lon=lon, speed=v, heading=hdg, length=4.5, width=1.8)
+            h, ahead = math.radians(hdg), 70.0 + 30.0 * j
+            m = _shift(m, ahead * math.sin(h) - 3.6 * math.cos(h),
+                       ahead * math.cos(h) + 3.6 * math.sin(h))
+            extra.append((t, m))
+            signers[id(m)] = insider
+    return extra, signers
+
+
+def test_weak_findings_of_one_signer_add_up_across_its_ids(table, clean_plan):
+    """Ids of one insider certificate, one after the other, each a weak sudden
+    appearance only: their evidence is the signer's, and the third quarantines it with
+    every id it holds.  Under three certificates they stay three weak findings."""
+    insider, ids = b"insider!", (0x6A7A0001, 0x6A7A0002, 0x6A7A0003)
+    extra, signers = _insider_ids(table, ids, (8.0, 10.0, 12.0))
+    det, found = _run_signed(clean_plan, extra=extra, signers=signers)
+    assert [(d.check, d.suspect, d.signer, d.t) for d in found] == [
+        ("sudden-appearance", tid, insider, t) for tid, t in zip(ids, (8.0, 10.0, 12.0),
+                                                                 strict=True)]
+    assert not any(is_strong(d, det.config) for d in found)
+    assert det.quarantined(ids[2], 12.05, insider) and det.quarantined(ids[0], 12.05)
+    assert det.ids_of(ids[2], 12.05, insider) == set(ids)
+    assert det.counters["quarantines"] == 1
+    det, _ = _run_signed(clean_plan, extra=extra)
+    assert not det.counters["quarantines"]
+
+
+def test_one_certificate_under_two_ids_at_once_is_a_sybil(table, clean_plan):
+    """The Sybil of issue 28 (``rve run --attack sybil``): ids of one insider certificate
+    sending together.  One signer sends under one id at a time: the second id's first
+    message overlaps the first id's on the signer's clock, a strong finding, and the
+    signer is quarantined with every id it holds.  (Before, the one id whose only finding
+    was a weak sudden appearance raised LCW and BSW.)"""
+    insider, ids = b"insider!", (0x6A7A0001, 0x6A7A0002, 0x6A7A0003)
+    extra, signers = _insider_ids(table, ids, (8.0, 8.0, 8.0), seconds=3.0)
+    det, found = _run_signed(clean_plan, extra=extra, signers=signers)
+    twins = [d for d in found if d.check == "sybil"]
+    assert twins[0].t == 8.0 and twins[0].suspect == ids[1] and twins[0].other == ids[0]
+    assert twins[0].evidence == {"signer": insider.hex(), "same_certificate": True}
+    assert {d.suspect for d in twins} == set(ids)
+    assert det.quarantined(ids[0], 10.95, insider) and det.ids_of(ids[0], 11.0,
+                                                                  insider) == set(ids)
+    # an id changed without changing the certificate is no Sybil, reordered or not
+    lead = _vehicle(clean_plan, "lead")
+
+    def change(v, m):
+        return dataclasses.replace(m, temp_id=0x12345678) \
+            if v == lead and m.sec_mark >= 15_000 else m
+
+    cert = _cert(temp_id("lead"))
+    jittery = plan(table, ChannelConfig(per=0.5, burst=3.0, latency_s=0.02, jitter_s=0.15), 3)
+    for the_plan in (clean_plan, jittery):
+        det = MisbehaviorDetector()
+        for t, m, hlat, hlon in _stream(the_plan, modify=change):
+            signer = cert if m.temp_id == 0x12345678 else _cert(m.temp_id)
+            assert det.observe(m, t, hlat, hlon, signer=signer) == []
+
+
+# --- sudden appearance from the first host fix -------------------------------------------
+
+
+def test_a_ghost_in_the_first_second_is_a_sudden_appearance(table, clean_plan):
+    """Issue 28: F2MD's blind 2.1 s warm-up let a ghost that starts at once raise a
+    22-tick FCW false alarm.  The warm-up now ends when the loss measured so far says
+    every vehicle in range has been heard: 0.5 s here (10 Hz, no loss), so a ghost
+    20 m ahead at 0.9 s is caught at its first message."""
+    ghost = 0x6A7A0000
+    extra = []
+    for k in range(20):
+        t = 0.9 + 0.1 * k
+        lat, lon, hdg, v = _host_at(table, t)
+        m = BSM(msg_cnt=k, temp_id=ghost, sec_mark=round(t * 1000) % 60000, lat=lat,
+                lon=lon, speed=v, heading=hdg, length=4.5, width=1.8)
+        extra.append((t, _shift(m, 20 * math.sin(math.radians(hdg)),
+                                20 * math.cos(math.radians(hdg)))))
+    det, found = _run(clean_plan, extra=extra)
+    assert found[0].check == "sudden-appearance" and found[0].t == pytest.approx(0.9)
+    assert found[0].evidence["behind"] is None and is_strong(found[0], det.config)
+    assert det.quarantined(ghost, 0.95)
+    # at 50 % loss in bursts an honest car could still be unheard at 0.9 s: not yet
+    lossy = plan(table, ChannelConfig(per=0.5, burst=3.0), 3)
+    det, found = _run(lossy, extra=extra)
+    assert not _checks(found, ghost) and det._senders.unheard_s(det.config) > 1.0
+
+
+def test_a_car_first_heard_behind_another_is_no_strong_appearance(table, clean_plan):
+    """Vehicles shadow the radio: a car first heard 45 m ahead, behind the leader (39 m
+    ahead in the host's lane), may have been there all along; at 25 m, in the clear, it
+    could not have."""
+    found = {}
+    for ahead in (45.0, 25.0):
+        lat, lon, hdg, v = _host_at(table, 12.0)
+        m = _shift(BSM(msg_cnt=0, temp_id=0x77, sec_mark=12_000, lat=lat, lon=lon, speed=v,
+                       heading=hdg, length=4.5, width=1.8),
+                   ahead * math.sin(math.radians(hdg)), ahead * math.cos(math.radians(hdg)))
+        det, f = _run(clean_plan, extra=[(12.0, m)])
+        (found[ahead],) = f
+        assert det.quarantined(0x77, 12.05) == (ahead == 25.0)
+    assert found[45.0].evidence["behind"] == temp_id("lead")
+    assert found[25.0].evidence["behind"] is None
 
 
 # --- state and quarantine rules ---------------------------------------------------------

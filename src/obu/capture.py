@@ -80,9 +80,7 @@ class ObuCapture:
         but the first while the OBU's files are over the cap (module docstring)."""
         if self.max_bytes is None or self._segment_bytes() < self.max_bytes / 10:
             return
-        failure = finish(self._files())  # the segment's files, each closed
-        if failure is not None:
-            raise failure
+        self.close()
         self.segment += 1
         self._open(self.segment)
         sizes: dict[int, int] = {}
@@ -189,6 +187,13 @@ class ObuCapture:
     def flush(self) -> None:
         for f in self._files():
             f.flush()
+
+    def close(self) -> None:
+        """Flush and close the per-tick files (all of them, even when one fails; then the
+        first failure raises)."""
+        failure = finish(self._files())
+        if failure is not None:
+            raise failure
 
     def end(self, exit: str, reason: str, failure: OSError | None = None,
             **counts: int) -> None:

@@ -27,7 +27,14 @@ checked for misbehavior, counted, and an RV message queued for its tick.
 * Misbehavior (``--mbd``): :class:`catc.mbd.MisbehaviorDetector`'s checks on every RV
   message that passes verification, on the host's clock; a detection is counted
   (``mbd_<check>``) and reported, and a sender in quarantine is dropped with its track
-  (status ``quarantined``).
+  (status ``quarantined``).  With ``--verify`` the evidence attaches to the signing
+  certificate (the verdict's HashedId8), which holds the ids it signs: a message under an
+  id another certificate holds is dropped (``mbd_id-conflict``), its signer the suspect,
+  and a quarantine drops every id of its signer.  A copy of a message already heard, or
+  one older than its sender's last (a replay: it needs no key), is dropped without a
+  finding (``mbd_copy``, ``mbd_stale``).  All these frames are recorded with status
+  ``quarantined``.  Without ``--verify`` the evidence attaches to the TemporaryID, which
+  anyone can claim: that mode cannot resist id theft.
 * The queue: a decoded RV message waits in :attr:`Frames.pending` until the tick it is due
   at (:meth:`Frames.due`, :mod:`obu.tick`).
 """
@@ -145,7 +152,7 @@ class Frames:
                 self.cap.frame(rx_unix, channel, data, err.reason)
             return None
         if channel == "rv":
-            if self.mbd is not None and self.misbehaves(bsm, rx_unix, data):
+            if self.mbd is not None and self.misbehaves(bsm, rx_unix, data, verdict):
                 return None
             self.pending.append(bsm)
             self.pending_rx[id(bsm)] = (rx_unix, data, verdict)
@@ -179,16 +186,20 @@ class Frames:
         if envelope is None:
             reason = "unsigned"
         else:
-            reason = self.verifier.verify(envelope, self.to_time64(rx_unix)).reason
+            reason = (v := self.verifier.verify(envelope, self.to_time64(rx_unix))).reason
+            self.last_signer = v.signer_digest
         self.counters[f"verify_{reason}"] += 1
         if reason != "ok":
             self.counters["verify_rejected" if self.enforce else "verify_failed"] += 1
         return reason
 
-    def misbehaves(self, bsm: BSM, rx_unix: float, data: bytes) -> bool:
+    def misbehaves(self, bsm: BSM, rx_unix: float, data: bytes,
+                   verdict: str | None = None) -> bool:
         """Run the misbehavior checks on one RV BSM; write a report per detection
-        (:meth:`obu.capture.ObuCapture.report`); True (drop it, and its track) when its
-        sender is in quarantine.
+        (:meth:`obu.capture.ObuCapture.report`); True (drop it) when the detector drops
+        it (a copy, a stale message, an id another signer holds) or its signer is in
+        quarantine (then the tracks of every id the signer holds go too).  ``verdict`` is
+        its 1609.2 verdict: only a verified signature (``ok``) names a signer.
 
         The checks' clock is the host's (its secMark time at the newest host frame), like
         the CAM's: a replay faster than real time (``rve run --speed``) then looks to them
@@ -201,24 +212,31 @@ class Frames:
         t = host[2]
         fresh = rx_unix - host[1] <= self.HOST_FRESH_S
         hb = host[0] if fresh else None
-        found = self.mbd.observe(bsm, t, hb.lat if hb else None, hb.lon if hb else None,
-                                 host_heading=hb.heading if hb else None)
+        signer = self.last_signer if verdict == "ok" else None
+        mbd = self.mbd
+        found = mbd.observe(bsm, t, hb.lat if hb else None, hb.lon if hb else None,
+                            host_heading=hb.heading if hb else None, signer=signer)
         for d in found:
             self.counters[f"mbd_{d.check}"] += 1
             if self.cap is not None:
                 self.cap.report(rx_unix, t, hb.temp_id if hb else None, d, bsm, data)
-        if not self.mbd.quarantined(bsm.temp_id, t):
-            return False
-        self.counters["mbd_quarantined"] += 1
-        keep = []
-        for m in self.pending:
-            if m.temp_id == bsm.temp_id:
-                self.pending_rx.pop(id(m), None)
-            else:
-                keep.append(m)
-        self.pending = keep
-        if self.drop(bsm.temp_id):
-            self.counters["mbd_tracks_dropped"] += 1
+        if mbd.dropped in ("copy", "stale"):
+            self.counters[f"mbd_{mbd.dropped}"] += 1
+        elif mbd.dropped is None:
+            if not mbd.quarantined(bsm.temp_id, t, signer):
+                return False
+            self.counters["mbd_quarantined"] += 1
+            ids = mbd.ids_of(bsm.temp_id, t, signer)
+            keep = []
+            for m in self.pending:
+                if m.temp_id in ids:
+                    self.pending_rx.pop(id(m), None)
+                else:
+                    keep.append(m)
+            self.pending = keep
+            for tid in ids:
+                if self.drop(tid):
+                    self.counters["mbd_tracks_dropped"] += 1
         if self.cap is not None:
             self.cap.frame(rx_unix, "rv", data, "quarantined",
                            sender=(bsm.temp_id, bsm.msg_cnt, bsm.sec_mark))

@@ -50,16 +50,18 @@ The modules, one job each:
 ==============  ===========================================================================
 ``checks``      one function per check, listed in ``checks.TABLE``: where a check is added
 ``detector``    :class:`MisbehaviorDetector`; ``observe`` runs the table on each message
-``quarantine``  the quarantine rule
+``identity``    which signer holds each TemporaryID (an id claimed by another is a conflict)
+``quarantine``  the evidence per signer and the quarantine rule
 ``state``       each sender's accepted messages (a bounded LRU) and the neighbour grid
 ``config``      :class:`MbdConfig`: every threshold, with its F2MD source
 ``geometry``    the local metric scale, the kinematic envelope and the footprint overlap
 ==============  ===========================================================================
 """
 
-from catc.mbd.checks import CHECKS, Detection
+from catc.mbd.checks import CHECKS, ID_CONFLICT, Detection
 from catc.mbd.config import MbdConfig
 from catc.mbd.detector import MisbehaviorDetector
 from catc.mbd.geometry import local_offset_m
 
-__all__ = ["CHECKS", "Detection", "MbdConfig", "MisbehaviorDetector", "local_offset_m"]
+__all__ = ["CHECKS", "ID_CONFLICT", "Detection", "MbdConfig", "MisbehaviorDetector",
+           "local_offset_m"]

@@ -27,15 +27,18 @@ from dataclasses import dataclass, field
 from typing import NamedTuple
 
 from catc.mbd.config import MbdConfig
-from catc.mbd.geometry import RAD, dlon, iou, max_min_dist
+from catc.mbd.geometry import RAD, blocks, dlon, iou, max_min_dist
 from catc.mbd.state import Senders
 
-__all__ = ["BASELINE_CHECKS", "CHECKS", "TABLE", "TRACK_CHECKS", "Check", "Detection",
-           "Observation", "Pair", "pairs", "ratio"]
+__all__ = ["BASELINE_CHECKS", "CHECKS", "ID_CONFLICT", "TABLE", "TRACK_CHECKS", "Check",
+           "Detection", "Observation", "Pair", "pairs", "ratio"]
 
-#: The check names a :class:`Detection` carries.
+#: The check names a :class:`Detection` carries (the checks of :data:`TABLE`) ...
 CHECKS = ("range", "position-consistency", "speed-consistency", "position-speed",
           "sudden-appearance", "frequency", "heading", "sybil", "intersection")
+#: ... and the finding of the identity binding (:mod:`catc.mbd.identity`): a message
+#: under an id another signer holds.
+ID_CONFLICT = "id-conflict"
 
 #: Checks whose failure means the message contradicts its own track: such a message does
 #: not become the sender's reference (one bad message must not poison the next good one).
@@ -57,9 +60,9 @@ Finding = tuple[float, dict]
 class Detection:
     """One failed check of one message."""
 
-    #: One of :data:`CHECKS`.
+    #: One of :data:`CHECKS`, or :data:`ID_CONFLICT`.
     check: str
-    #: The TemporaryID of the sender.
+    #: The TemporaryID the message claims.
     suspect: int
     #: The receive time (s, the caller's clock).
     t: float
@@ -70,6 +73,9 @@ class Detection:
     evidence: dict = field(default_factory=dict)
     #: The second id for sybil / intersection (None: the host).
     other: int | None = None
+    #: Whom the evidence attaches to: the HashedId8 of the certificate that signed the
+    #: message (None: unsigned, the id ``suspect`` itself).
+    signer: bytes | None = None
 
 
 class Observation:
@@ -77,6 +83,10 @@ class Observation:
     Observation for every message; the checks read it (and the Sybil check counts in
     ``sybil``).
 
+    * Its signer: ``key``, whom the evidence attaches to (the signer's HashedId8, or
+      ``tid`` when unsigned), ``conflict``, the other signer holding ``tid`` (None: none;
+      when set, the fields below are not filled: the message goes no further), and
+      ``twin``, another id the signer sends under at the same time (None: none).
     * The message: ``bsm`` itself, ``tid``, ``t`` (receive time, s), ``sm`` (secMark),
       ``lat``, ``lon``, ``speed``, ``heading`` (deg, in [0, 360)), ``length``, ``width``
       (None when unavailable), and ``kx``/``ky``, metres per degree at its latitude.
@@ -97,10 +107,10 @@ class Observation:
       the sender's footprint: heading ``h`` (rad), ``sin_h``, ``cos_h`` and diagonal
       ``diag`` (m)."""
 
-    __slots__ = ("acc", "ahead", "anchor_i", "bsm", "cos_h", "diag", "dt", "dtr", "follows", "h",
-                 "heading", "host_d", "host_heading", "hx", "hy", "kx", "ky", "lat", "length",
-                 "lon", "rdist", "ref", "rx", "ry", "senders", "sin_h", "sm", "speed", "st",
-                 "sybil", "t", "tid", "ts", "width")
+    __slots__ = ("acc", "ahead", "anchor_i", "bsm", "conflict", "cos_h", "diag", "dt", "dtr",
+                 "follows", "h", "heading", "host_d", "host_heading", "hx", "hy", "key", "kx",
+                 "ky", "lat", "length", "lon", "rdist", "ref", "rx", "ry", "senders", "sin_h",
+                 "sm", "speed", "st", "sybil", "t", "tid", "ts", "twin", "width")
 
     def __init__(self, senders: Senders) -> None:
         self.senders = senders
@@ -163,24 +173,62 @@ def speed_plausibility(o: Observation, c: MbdConfig) -> Finding | None:
 
 
 def sudden_appearance(o: Observation, c: MbdConfig) -> Finding | None:
-    """F2MD SuddenAppearenceCheck: a sender's first message close to the host, after the
-    detector's warm-up, that does not continue another id's path (a pseudonym change)."""
+    """F2MD SuddenAppearenceCheck: a sender's first message close to the host that does
+    not continue another id's path (a pseudonym change), once every vehicle in range has
+    been heard (:meth:`~catc.mbd.state.Senders.unheard_s`: 0.5 s at 10 Hz without loss,
+    not F2MD's blind 2.1 s)."""
     d = o.host_d
-    if o.acc is not None or d is None:
+    if o.acc is not None or d is None or not d < c.sa_range_m:
         return None
     senders = o.senders
-    warmup = max(c.sa_warmup_s, c.sa_warmup_intervals * senders.interval)
-    if not (d < c.sa_range_m and o.t - senders.t0 >= warmup) or _continues(o, c):
+    if not o.t - senders.t0 >= senders.unheard_s(c) or _continues(o, c):
         return None
     return ratio(c.sa_range_m, d), {"distance_m": d, "limit_m": c.sa_range_m,
-                                    "safety_range_m": c.sa_safety_range_m}
+                                    "safety_range_m": c.sa_safety_range_m,
+                                    "behind": _behind(o, c) if d < c.sa_safety_range_m
+                                    else None}
+
+
+def _behind(o: Observation, c: MbdConfig) -> int | None:
+    """The id of a vehicle heard lately, and for ``sa_shadow_heard_s`` at least (ids that
+    appear together shield none of each other), whose footprint crosses the line of
+    sight from the host to the message's sender (None: a clear line).  Vehicles shadow the radio
+    (M. Boban et al., "Impact of Vehicles as Obstacles in Vehicular Ad Hoc Networks",
+    IEEE JSAC 29(1), 2011: some 10 dB past one car), so a vehicle first heard behind
+    another may have been there all along; in the clear it could not have."""
+    get = o.senders.by_id.get
+    hx, hy = o.hx, o.hy
+    for otid in o.senders.ids_near(o.lat, o.lon):
+        other = get(otid)
+        if other is None or other is o.st or other.acc is None \
+                or not o.t - other.first_t >= c.sa_shadow_heard_s:
+            continue
+        m = other.acc
+        dt = o.senders.pair_dt(other, o.t, o.sm)
+        if not -c.max_delta_inter_s < dt < c.max_delta_inter_s:
+            continue
+        ox, oy = dlon(m.lon, o.lon) * o.kx, (m.lat - o.lat) * o.ky
+        width = c.host_width_m if m.width is None else m.width
+        if m.heading is None:
+            box = (ox, oy, 0.0, width, width)
+        else:
+            h = m.heading * RAD
+            if m.speed is not None:
+                ox += m.speed * dt * math.sin(h)
+                oy += m.speed * dt * math.cos(h)
+            box = (ox, oy, h, c.host_length_m if m.length is None else m.length, width)
+        if blocks(0.0, 0.0, hx, hy, box):
+            return other.tid
+    return None
 
 
 def _continues(o: Observation, c: MbdConfig) -> bool:
     """Whether the message's new id continues the path of a sender heard within
-    ``sa_link_time_s`` (a pseudonym change; :class:`~catc.mbd.config.MbdConfig`)."""
+    ``sa_link_time_s``, plus twice the time the measured loss may hide a vehicle (a
+    pseudonym change; :class:`~catc.mbd.config.MbdConfig`)."""
     v = (c.max_speed_mps if o.speed is None else min(o.speed, c.max_speed_mps)) + 5.0
-    reach = min(8, 1 + int(v * c.sa_link_time_s // c.grid_cell_m))
+    link_s = c.sa_link_time_s + 2.0 * o.senders.unheard_s(c)
+    reach = min(8, 1 + int(v * link_s // c.grid_cell_m))
     lat, lon, kx, ky = o.lat, o.lon, o.kx, o.ky
     get = o.senders.by_id.get
     for otid in o.senders.ids_near(lat, lon, reach):
@@ -191,7 +239,7 @@ def _continues(o: Observation, c: MbdConfig) -> bool:
         dt = o.senders.pair_dt(other, o.t, o.sm)
         # a vehicle does not send under two ids in the same interval: an id heard with
         # this very message's time is a neighbour, not our previous pseudonym
-        if not c.sa_link_min_gap_s <= dt <= c.sa_link_time_s:
+        if not c.sa_link_min_gap_s <= dt <= link_s:
             continue
         ox, oy = dlon(m.lon, lon) * kx, (m.lat - lat) * ky
         if m.speed is not None and m.heading is not None:
@@ -208,9 +256,10 @@ def _continues(o: Observation, c: MbdConfig) -> bool:
 
 def beacon_frequency(o: Observation, c: MbdConfig) -> Finding | None:
     """F2MD BeaconFrequencyCheck, on secMark: messages closer in time than
-    ``min_interval_s`` (or not after the last one, beyond the reorder window: a replay);
-    and the sender's clock running ahead of the receive clock (a forged or replayed
-    timestamp)."""
+    ``min_interval_s`` (two messages with one secMark included); and the sender's clock
+    running ahead of the receive clock (a forged timestamp).  A message older than the
+    sender's last beyond the reorder window never gets here: it is a replay, whoever
+    sent it, and the detector drops it without a finding."""
     ahead = o.ahead
     if ahead is None:
         return None

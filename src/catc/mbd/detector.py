@@ -1,18 +1,29 @@
-"""The detector: ``observe`` reads one message into an
-:class:`~catc.mbd.checks.Observation`, runs the checks of
+"""The detector: ``observe`` binds one message's id to its signer
+(:mod:`catc.mbd.identity`), reads it into an :class:`~catc.mbd.checks.Observation`, drops
+it if it is a copy or older than its sender's last (a replay), runs the checks of
 :data:`~catc.mbd.checks.TABLE` on it and combines their verdicts into the sender's state
-and its quarantine (the package docstring has the overview)."""
+and its signer's quarantine (the package docstring has the overview)."""
 
 from __future__ import annotations
 
 import math
 import operator
 from collections import Counter
+from collections.abc import Hashable
 from typing import Any
 
-from catc.mbd.checks import BASELINE_CHECKS, TABLE, TRACK_CHECKS, Detection, Observation, pairs
+from catc.mbd.checks import (
+    BASELINE_CHECKS,
+    ID_CONFLICT,
+    TABLE,
+    TRACK_CHECKS,
+    Detection,
+    Observation,
+    pairs,
+)
 from catc.mbd.config import MbdConfig
 from catc.mbd.geometry import dlon, scale
+from catc.mbd.identity import Identities
 from catc.mbd.quarantine import Quarantine, is_strong
 from catc.mbd.state import Msg, Sender, Senders, wrapped_dt
 
@@ -47,19 +58,31 @@ def _sec_mark(x: Any) -> int | None:
     return v if 0 <= v < 61_000 else None
 
 
+def _hex(key: Hashable) -> str:
+    return key.hex() if isinstance(key, bytes) else f"{key:08X}"
+
+
 class MisbehaviorDetector:
     """Plausibility checks on verified BSMs with bounded per-sender state (module
     docstring; every threshold in :class:`MbdConfig`)."""
+
+    #: Why :meth:`observe` dropped its last message without a finding (None: it did not):
+    #: ``copy`` (an exact copy of a message heard from its sender) or ``stale`` (older
+    #: than its sender's last beyond the reorder window); or, with the finding, ``id-
+    #: conflict`` (another signer holds its id).
+    dropped: str | None = None
 
     def __init__(self, config: MbdConfig = _DEFAULT, max_senders: int = 4096) -> None:
         if not isinstance(max_senders, int) or max_senders < 1:
             raise ValueError(f"max_senders must be a positive int, got {max_senders!r}")
         self.config = config
         self.max_senders = max_senders
-        #: Detections by check name, and ``quarantines`` (senders put in quarantine).
+        #: Detections by check name, ``quarantines`` (signers, or unsigned ids, put in
+        #: quarantine), and the messages dropped as ``copy`` or ``stale``.
         self.counters: Counter = Counter()
         self._senders = Senders(config, max_senders)
         self._quarantine = Quarantine(config, max_senders)
+        self._ids = Identities(config, max_senders)
         self._o = Observation(self._senders)
 
     def __len__(self) -> int:
@@ -70,23 +93,54 @@ class MisbehaviorDetector:
         """Ids in the neighbour grid (bounded like the senders)."""
         return self._senders.grid_entries()
 
-    def quarantined(self, temp_id: int, t: float) -> bool:
-        """Whether ``temp_id`` is in quarantine at ``t`` (its track must raise no warning).
+    def quarantined(self, temp_id: int, t: float, signer: bytes | None = None) -> bool:
+        """Whether a message under ``temp_id`` signed by ``signer`` is in quarantine at
+        ``t`` (its track must raise no warning): ``signer``'s quarantine; without one, that
+        of the signer holding ``temp_id``, or of the unsigned id.
 
-        Rule: from the detection that puts it there, for ``quarantine_s``, renewed by every
-        new detection (and, after a strong finding, by every message): quarantine after
-        ``quarantine_k`` failed messages within ``quarantine_window_s``, or at once on a
-        sudden appearance inside the safety range, an intersection or a Sybil finding."""
-        return self._quarantine.quarantined(temp_id, t)
+        Rule (:mod:`catc.mbd.quarantine`): from the detection that puts it there, for
+        ``quarantine_s``, renewed by every new detection (and, after a strong finding, by
+        every message): quarantine after ``quarantine_k`` failed messages within
+        ``quarantine_window_s``, or at once on a sudden appearance inside the safety
+        range, an intersection, a Sybil finding or an id conflict."""
+        return self._quarantine.quarantined(self._key(temp_id, t, signer), t)
+
+    def ids_of(self, temp_id: int, t: float, signer: bytes | None = None) -> frozenset[int]:
+        """The ids a quarantine of this message's sender covers (their tracks go with
+        it): those its signer holds, or ``temp_id`` alone when unsigned."""
+        key = self._key(temp_id, t, signer)
+        return self._ids.ids_of(key) | {temp_id} if isinstance(key, bytes) \
+            else frozenset((temp_id,))
+
+    def _key(self, temp_id: int, t: float, signer: bytes | None) -> Hashable:
+        if signer is not None:
+            return signer
+        holder = self._ids.holder(temp_id, t)
+        return temp_id if holder is None else holder
 
     def observe(self, bsm, t: float, host_lat: float | None, host_lon: float | None, *,
-                host_heading: float | None = None) -> list[Detection]:
+                host_heading: float | None = None,
+                signer: bytes | None = None) -> list[Detection]:
         """The checks ``bsm`` (a :class:`catc.bsm.BSM`) fails, received at ``t`` (s, the
         caller's clock) with the host at ``host_lat``/``host_lon`` (None: unknown, and the
         host-relative checks are skipped; pass None too when the host's own position is
         stale).  Empty for a plausible message.  A check whose fields are unavailable is
         skipped.  ``host_heading`` (deg) orients the host's footprint; without it the host
         is taken as aligned with the sender.
+
+        ``signer`` is the HashedId8 of the certificate whose signature on the message
+        verified (None: unsigned or unverified).  The evidence attaches to it, and it
+        holds the message's id (:mod:`catc.mbd.identity`): a message under an id that
+        another signer holds, or an unsigned one under a held id, is an id conflict (a
+        strong finding against the newcomer; the message goes no further, and
+        :attr:`dropped` says so); one under an id whose messages interleave in time with
+        another id of the same signer is a Sybil (``other``: that id).  Without signers
+        the evidence attaches to the id.
+
+        A message that repeats one already heard from its sender (msgCnt, secMark and
+        position), or that is older than its sender's last beyond the reorder window,
+        is dropped without a finding (:attr:`dropped`): a replay, which needs no key and
+        says nothing of its sender's behaviour.
 
         The message checks of :data:`~catc.mbd.checks.TABLE` run in its order, then, when
         the message follows its sender's track and has a heading and a size, its pair
@@ -95,25 +149,43 @@ class MisbehaviorDetector:
         contradicts its own track (:data:`~catc.mbd.checks.TRACK_CHECKS`; a new baseline
         on :data:`~catc.mbd.checks.BASELINE_CHECKS`), and the quarantine rule applies
         (:mod:`catc.mbd.quarantine`)."""
-        o = self._read(bsm, t, host_lat, host_lon, host_heading)
+        self.dropped = None
+        o = self._read(bsm, t, host_lat, host_lon, host_heading, signer)
         if o is None:
             return []
-        c, tid, t = self.config, o.tid, o.t
+        c, tid, t, key = self.config, o.tid, o.t, o.key
+        if o.conflict is not None:
+            return self._conflict(o, signer)
+        st = o.st
+        copy = (bsm.msg_cnt, o.sm, o.lat, o.lon)
+        copies = st.copies
+        if copy in copies:
+            return self._drop("copy")
+        if o.dt is not None and o.dt < -c.reorder_window_s and not o.ahead > c.max_clock_skew_s:
+            return self._drop("stale")
+        copies[copy] = None
+        if len(copies) > c.copies_kept:
+            del copies[next(iter(copies))]
         found: list[Detection] = []
+        if o.twin is not None:  # its signer sends under another id at the same time
+            found.append(Detection("sybil", tid, t, 1.0, {"signer": signer.hex(),
+                                                          "same_certificate": True},
+                                   o.twin, signer))
         for name, run in _MESSAGE_CHECKS:
             r = run(o, c)
             if r is not None:
-                found.append(Detection(name, tid, t, r[0], r[1]))
+                found.append(Detection(name, tid, t, r[0], r[1], None, signer))
         if o.follows and o.heading is not None and o.length is not None:
             o.sybil = {}
             for p in pairs(o, c):
                 for name, run in _PAIR_CHECKS:
                     r = run(o, p, c)
                     if r is not None:
-                        found.append(Detection(name, tid, t, r[0], r[1], p.tid))
+                        found.append(Detection(name, tid, t, r[0], r[1], p.tid, signer))
             o.st.sybil = o.sybil
 
-        st = o.st
+        if o.acc is None:
+            self._senders.arrived(t)
         st.heard_t = t
         if o.anchor_i is not None and not (found and any(d.check in TRACK_CHECKS
                                                          for d in found)):
@@ -123,16 +195,35 @@ class MisbehaviorDetector:
         if found:
             for d in found:
                 self.counters[d.check] += 1
-            if self._quarantine.punish(st, t, any(is_strong(d, c) for d in found)):
+            if self._quarantine.punish(key, t, any(is_strong(d, c) for d in found)):
                 self.counters["quarantines"] += 1
-        elif st.strong:  # a clean message renews only a strong finding's quarantine
-            self._quarantine.passed(st, t)
+        else:  # a clean message renews only a strong finding's quarantine
+            self._quarantine.passed(key, t)
         return found
 
+    def _drop(self, why: str) -> list[Detection]:
+        self.dropped = why
+        self.counters[why] += 1
+        return []
+
+    def _conflict(self, o: Observation, signer: bytes | None) -> list[Detection]:
+        """The message's id is held by another signer: the finding, against its own
+        signer (or, unsigned, its id), and the message dropped."""
+        d = Detection(ID_CONFLICT, o.tid, o.t, 1.0, {
+            "holder": _hex(o.conflict), "signer": None if signer is None else signer.hex()},
+            None, signer)
+        self.dropped = ID_CONFLICT
+        self.counters[ID_CONFLICT] += 1
+        if self._quarantine.punish(o.key, o.t, True):
+            self.counters["quarantines"] += 1
+        return [d]
+
     def _read(self, bsm, t: float, host_lat: float | None, host_lon: float | None,
-              host_heading: float | None) -> Observation | None:
+              host_heading: float | None, signer: bytes | None) -> Observation | None:
         """The message as the checks see it (None: no usable time, position or id):
-        its fields, the host from it, and its timing (:meth:`_timing`).  Every number
+        whom the evidence attaches to, or the signer holding its id when that is another
+        (``conflict``: then nothing more); its fields, the host from it, and its timing
+        (:meth:`_timing`).  Every number
         goes through :func:`_num`, whose float case is written out here (most of them
         are floats, and this runs for every message); the one Observation is refilled
         (a new one per message would cost some 5 % of ``observe``)."""
@@ -147,6 +238,22 @@ class MisbehaviorDetector:
             tid = int(bsm.temp_id)
         except (TypeError, ValueError):
             return None
+        o = self._o
+        o.tid = tid
+        o.t = t
+        o.key = tid if signer is None else signer
+        sm = bsm.sec_mark
+        sm = sm if type(sm) is int and 0 <= sm < 61_000 else _sec_mark(sm)
+        ids = self._ids
+        if signer is not None:
+            o.conflict, new, o.twin = ids.claim(tid, signer, t, sm)
+            if new:  # the id changed hands: its history is not the new holder's
+                self._senders.forget(tid)
+        else:
+            o.conflict = ids.holder(tid, t) if ids else None
+            o.twin = None
+        if o.conflict is not None:
+            return o
         senders = self._senders
         if senders.t0 is None:
             senders.t0 = t
@@ -162,14 +269,9 @@ class MisbehaviorDetector:
         width = width if type(width) is float and width - width == 0.0 else _num(width)
         if length is None or width is None or length <= 0.0 or width <= 0.0:
             length = width = None
-        sm = bsm.sec_mark
-        sm = sm if type(sm) is int and 0 <= sm < 61_000 else _sec_mark(sm)
         kx, ky = scale(lat)
         st = senders.get(tid, t)
-        o = self._o
         o.bsm = bsm
-        o.tid = tid
-        o.t = t
         o.lat = lat
         o.lon = lon
         o.speed = speed

@@ -1,75 +1,106 @@
-"""The quarantine rule: which senders' tracks must raise no warning, and until when.
+"""The quarantine rule: whose messages must raise no warning, and until when.
 
-A sender is quarantined when ``quarantine_k`` of its messages fail within
+Evidence attaches to a :class:`Principal`: the signer of the message (the HashedId8 of
+its certificate, :mod:`catc.mbd.identity`), or its TemporaryID when it is unsigned (then
+nothing binds the id to a sender, and whoever claims an id can get it quarantined: the
+unsigned mode cannot resist id theft).  Through its signer, a quarantine covers every id
+that signer holds.
+
+A principal is quarantined when ``quarantine_k`` of its messages fail within
 ``quarantine_window_s`` (a message counts once, however many checks it fails: a single
-GNSS glitch is one failed message), or at once on a strong finding (:func:`is_strong`: a
-sudden appearance inside the host's safety range, an intersection, a Sybil).  The
-quarantine lasts ``quarantine_s`` from the last detection and is renewed by every new one;
-after a strong finding, with ``sticky_strong``, by every message of the sender too (a
-fabricated vehicle does not become real by behaving consistently afterwards).  The rule is
-ours, not F2MD's; docs/mbd.md explains it.
+GNSS glitch is one failed message; weak findings spread over the window add up), or at
+once on a strong finding (:func:`is_strong`: a sudden appearance inside the host's safety
+range and in its clear line of sight, an intersection, a Sybil, an id held by another
+signer).  The quarantine lasts ``quarantine_s`` from the last detection and is renewed by
+every new one; after a strong finding, with ``sticky_strong``, by every message of the
+principal too (a fabricated vehicle does not become real by behaving consistently
+afterwards).  The rule is ours, the window F2MD's (:class:`~catc.mbd.config.MbdConfig`);
+docs/reference/mbd.md explains it.
 """
 
 from __future__ import annotations
 
 from collections import OrderedDict
+from collections.abc import Hashable
 
 from catc.mbd.checks import Detection
 from catc.mbd.config import MbdConfig
-from catc.mbd.state import Sender
 
-__all__ = ["Quarantine", "is_strong"]
+__all__ = ["Principal", "Quarantine", "is_strong"]
 
 
 def is_strong(d: Detection, c: MbdConfig) -> bool:
-    """Whether ``d`` quarantines its sender at once: an intersection, a Sybil, or a sudden
-    appearance inside the host's safety range (where a ghost can trigger a forward
-    collision warning)."""
+    """Whether ``d`` quarantines its sender at once: an intersection, a Sybil, an id
+    another signer holds, or a sudden appearance inside the host's safety range (where a
+    ghost can trigger a forward collision warning) in the host's clear line of sight (one
+    behind another vehicle may have been in its radio shadow)."""
     check = d.check
-    return check == "intersection" or check == "sybil" or (
-        check == "sudden-appearance" and d.evidence["distance_m"] < c.sa_safety_range_m)
+    return check in ("intersection", "sybil", "id-conflict") or (
+        check == "sudden-appearance" and d.evidence["distance_m"] < c.sa_safety_range_m
+        and d.evidence["behind"] is None)
+
+
+class Principal:
+    """Who evidence attaches to: ``key``, a signer's HashedId8 (bytes) or an unsigned
+    TemporaryID (int); the receive times of its failed messages in the window
+    (``strikes``), whether a strong finding quarantined it, and until when (s)."""
+
+    __slots__ = ("key", "strikes", "strong", "until")
+
+    def __init__(self, key: Hashable) -> None:
+        self.key = key
+        self.strikes: list[float] = []
+        self.strong = False
+        self.until = -float("inf")
 
 
 class Quarantine:
-    """The senders in quarantine (at most ``max_senders``, the oldest forgotten first)."""
+    """The principals with evidence or in quarantine (at most ``max_senders``, the least
+    recently judged forgotten first)."""
 
     def __init__(self, config: MbdConfig, max_senders: int) -> None:
         self.config = config
         self.max_senders = max_senders
-        self._until: OrderedDict[int, float] = OrderedDict()  # id -> until (s)
+        self._by: OrderedDict[Hashable, Principal] = OrderedDict()
 
     def __len__(self) -> int:
-        return len(self._until)
+        return len(self._by)
 
-    def quarantined(self, tid: int, t: float) -> bool:
-        """Whether ``tid`` is in quarantine at ``t``."""
-        until = self._until.get(tid)
-        return until is not None and t < until
+    def quarantined(self, key: Hashable, t: float) -> bool:
+        """Whether principal ``key`` is in quarantine at ``t``."""
+        p = self._by.get(key)
+        return p is not None and t < p.until
 
-    def punish(self, st: Sender, t: float, strong: bool) -> bool:
-        """A message of ``st`` received at ``t`` failed (``strong``: a strong finding):
-        count the strike and quarantine or renew; True when ``st`` enters quarantine."""
+    def punish(self, key: Hashable, t: float, strong: bool) -> bool:
+        """A message of ``key`` received at ``t`` failed (``strong``: a strong finding):
+        count the strike and quarantine or renew; True when ``key`` enters quarantine."""
         c = self.config
-        until = self._until.get(st.tid)
-        active = until is not None and t < until
-        strikes = [s for s in st.strikes if t - s < c.quarantine_window_s]
+        p = self._get(key)
+        active = t < p.until
+        strikes = [s for s in p.strikes if t - s < c.quarantine_window_s]
         strikes.append(t)
-        st.strikes = strikes[-c.quarantine_k:]
+        p.strikes = strikes[-c.quarantine_k:]
         if strong or len(strikes) >= c.quarantine_k or active:
-            st.strong = st.strong or strong
-            self._set(st.tid, t + c.quarantine_s)
+            p.strong = p.strong or strong
+            p.until = t + c.quarantine_s
             return not active
         return False
 
-    def passed(self, st: Sender, t: float) -> None:
-        """A message of ``st`` received at ``t`` passed every check: it renews a
+    def passed(self, key: Hashable, t: float) -> None:
+        """A message of ``key`` received at ``t`` passed every check: it renews a
         quarantine on a strong finding (``sticky_strong``)."""
-        if st.strong and self.config.sticky_strong and self.quarantined(st.tid, t):
-            self._set(st.tid, t + self.config.quarantine_s)
+        p = self._by.get(key)
+        if p is not None and p.strong and self.config.sticky_strong and t < p.until:
+            p.until = t + self.config.quarantine_s
+            self._by.move_to_end(key)
 
-    def _set(self, tid: int, until: float) -> None:
-        q = self._until
-        q[tid] = until
-        q.move_to_end(tid)
-        while len(q) > self.max_senders:
-            q.popitem(last=False)
+    def _get(self, key: Hashable) -> Principal:
+        by = self._by
+        p = by.get(key)
+        if p is None:
+            p = by[key] = Principal(key)
+            while len(by) > self.max_senders:
+                by.popitem(last=False)
+        else:
+            by.move_to_end(key)
+        return p

@@ -1,6 +1,7 @@
 """What the detector remembers between messages, bounded: each sender's accepted messages
-(an LRU of at most ``max_senders`` TemporaryIDs), the grid that finds a sender's
-neighbours, the network's mean message interval, and time on the senders' clocks.
+(an LRU of at most ``max_senders`` TemporaryIDs) and the last messages it heard from it
+(to recognise copies), the grid that finds a sender's neighbours, the network's message
+interval and loss, and time on the senders' clocks.
 
 A sender's clock is its secMark (ms within the UTC minute, wrapped at 60000); ``t`` is
 the caller's receive clock.
@@ -19,6 +20,7 @@ __all__ = ["Msg", "Sender", "Senders", "wrapped_dt"]
 #: Accepted messages kept back to the anchor (a flood of messages inside ``anchor_s``).
 _HISTORY = 64
 _AROUND = (-1, 0, 1)
+_EARLY = 256
 
 
 def wrapped_dt(sm: int, sm0: int, dt_rx: float) -> float:
@@ -43,9 +45,10 @@ class Msg:
 
 
 class Sender:
-    """What the detector keeps of one TemporaryID."""
+    """What the detector keeps of one TemporaryID (its messages; the evidence against it
+    is its signer's, :class:`catc.mbd.quarantine.Principal`)."""
 
-    __slots__ = ("acc", "cell", "first_t", "heard_t", "hist", "min_off", "strikes", "strong",
+    __slots__ = ("acc", "cell", "copies", "first_t", "heard_t", "hist", "min_off", "nominal",
                  "sybil", "tid")
 
     def __init__(self, tid: int, t: float) -> None:
@@ -55,8 +58,9 @@ class Sender:
         self.acc: Msg | None = None  # the last accepted message
         self.hist: list[Msg] = []  # accepted messages back to the anchor
         self.min_off = math.inf  # lowest (receive time - sender time) so far
-        self.strikes: list[float] = []  # receive times of failed messages in the window
-        self.strong = False  # quarantined on a strong finding
+        self.nominal = 0.0  # its shortest accepted interval (s; 0: none yet)
+        #: the last messages heard, (msgCnt, secMark, lat, lon), oldest first
+        self.copies: dict[tuple, None] = {}
         self.sybil: dict[int, int] = {}  # other id -> consecutive co-moving messages
         self.cell: tuple[int, int] | None = None
 
@@ -77,6 +81,15 @@ class Senders:
         self.t0: float | None = None
         #: Running mean of accepted message intervals (s; 0: none yet).
         self.interval = 0.0
+        #: Running mean of the nominal interval (s; 0: none yet): each accepted interval
+        #: over the messages it spans on its sender's shortest interval.
+        self.nominal = 0.0
+        #: The loss on the senders' secMark gaps: in-order messages heard, messages missing
+        #: before them, and the gaps (bursts) they were missing in.
+        self.heard = self.lost = self.bursts = 0
+        #: Receive times of the first messages of the senders first heard in the first
+        #: minute (at most ``_EARLY``): those first heard late count as lost before.
+        self.early: list[float] = []
 
     def __len__(self) -> int:
         return len(self.by_id)
@@ -98,6 +111,40 @@ class Senders:
             _, old = senders.popitem(last=False)
             self._ungrid(old)
         return st
+
+    def forget(self, tid: int) -> None:
+        """Drop the state of ``tid`` (its next message starts a new one)."""
+        st = self.by_id.pop(tid, None)
+        if st is not None:
+            self._ungrid(st)
+
+    def unheard_s(self, c: MbdConfig) -> float:
+        """How long (s) a vehicle in range may go unheard, with probability
+        ``c.sa_unheard_p``, given the loss measured so far (inf before any interval).
+
+        A vehicle misses its first message with probability p (the loss rate) and each
+        next one, inside a burst of mean length L, with probability q = 1 - 1/L (q = p
+        for independent loss), so it is unheard for n intervals with probability about
+        p q^(n-1).  p and L are counted on the senders' secMark gaps, and on the
+        senders first heard after the start (within ``c.sa_warmup_max_intervals``): the
+        messages they would have sent before count as lost, in one burst.  The prior is
+        one lost message in one burst and one heard (an early estimate is cautious: p =
+        1/2 without data); n is clamped to ``c.sa_warmup_intervals`` ..
+        ``c.sa_warmup_max_intervals``."""
+        nominal = self.nominal
+        if not nominal:
+            return math.inf
+        lost, bursts = self.lost + 1, self.bursts + 1
+        t0, horizon = self.t0, c.sa_warmup_max_intervals * nominal
+        for t in self.early:  # first heard late: lost since the start, in one burst
+            k = round((t - t0) / nominal) if t - t0 <= horizon else 0
+            if k > 0:
+                lost += k
+                bursts += 1
+        p = lost / (lost + self.heard + 1)
+        q = max(p, 1.0 - bursts / lost)
+        n = 1.0 + math.log(c.sa_unheard_p / p) / math.log(q) if p > c.sa_unheard_p else 1.0
+        return min(max(n, c.sa_warmup_intervals), c.sa_warmup_max_intervals) * self.nominal
 
     def _ungrid(self, st: Sender) -> None:
         if st.cell is not None:
@@ -164,6 +211,8 @@ class Senders:
             if 0.0 < dt <= self.config.max_time_delta_s:
                 self.interval = dt if not self.interval else \
                     0.98 * self.interval + 0.02 * dt
+            if dt >= self.config.min_interval_s:
+                self._loss(st, dt)
         st.acc = m
         if reset:
             st.hist = [m]
@@ -181,3 +230,24 @@ class Senders:
             self._ungrid(st)
             self._grid.setdefault(cell[0], {}).setdefault(cell[1], set()).add(st.tid)
             st.cell = cell
+
+    def arrived(self, t: float) -> None:
+        """A sender's first message, received at ``t``: kept for :meth:`unheard_s`."""
+        if len(self.early) < _EARLY and t - self.t0 <= 60.0:
+            self.early.append(t)
+
+    def _loss(self, st: Sender, dt: float) -> None:
+        """An in-order interval ``dt`` (s, secMark) of ``st``: the messages missing in it,
+        on its shortest interval so far (a gap over a minute, or over 100 intervals, is a
+        vehicle that was away, not loss)."""
+        nominal = st.nominal
+        if not nominal or dt < nominal:
+            st.nominal = nominal = dt
+        k = round(dt / nominal)
+        if k > 100 or dt > 60.0:
+            return
+        self.nominal = nominal if not self.nominal else 0.98 * self.nominal + 0.02 * dt / k
+        self.heard += 1
+        if k > 1:
+            self.lost += k - 1
+            self.bursts += 1

@@ -15,8 +15,9 @@ feeds it (``obu.frames.Frames.misbehaves``):
 * the host frame steps a :class:`catc.cam.ContextAwareMap` (predictor ``ca``, every safety
   app) with the frames due (:func:`catc.replay.split_due`).
 
-It prints the reports by check and by vehicle, each quarantined vehicle (its first
-report, how far from the host, how long it stayed in quarantine, frames dropped), and the
+It prints the reports by check and by vehicle (the JSON has each vehicle's first report,
+its time and distance from the host), each quarantined vehicle (its first report, how
+far from the host, how long it stayed in quarantine, frames dropped), and the
 warnings the quarantines cost: the same map fed every frame (no MBD) against the map
 with MBD, warning ticks (tick x vehicle) and warning events per app.  ``--set KEY=VALUE``
 changes an :class:`catc.mbd.MbdConfig` threshold, to tune the detector against these
@@ -106,16 +107,22 @@ def _quarantine_rows(times: dict[str, list[float]], first: dict[str, dict]) -> d
 
 def offline(spec: str, config, per: float, seed: int, apps: bool) -> dict:
     """One dataset through the detector (and the map) as ``obu run --mbd`` runs it."""
+    from hil.datasets import load_table
+
+    t_start = time.perf_counter()
+    out = measure(load_table(spec, None), config, per, seed, apps)
+    return {"spec": spec, **out, "elapsed_s": round(time.perf_counter() - t_start, 2)}
+
+
+def measure(table, config, per: float = 0.0, seed: int = 0, apps: bool = True) -> dict:
+    """:func:`offline` on a table (its ``default_host`` the host)."""
     from catc.apps import SafetyApps
     from catc.cam import CamConfig, ContextAwareMap, SecMarkClock
     from catc.channel import ChannelConfig
     from catc.j2735 import decode_frame, encode_frame
     from catc.mbd import MisbehaviorDetector
     from catc.replay import plan, simulate, split_due, temp_id
-    from hil.datasets import load_table
 
-    t_start = time.perf_counter()
-    table = load_table(spec, None)
     the_plan = plan(table, ChannelConfig(per=per / 100.0), seed)
     names = {temp_id(v): v for v in the_plan.vehicles}
     mbd = MisbehaviorDetector(config)
@@ -172,10 +179,11 @@ def offline(spec: str, config, per: float, seed: int, apps: bool) -> dict:
             continue
         pending.append(m)
     out = {
-        "spec": spec, "table": table.name, **_scene_info(table), "per": per, "seed": seed,
+        "table": table.name, **_scene_info(table), "per": per, "seed": seed,
         "rv_frames": rv_frames, "unchecked_before_host": no_host,
         "reports": sum(reports.values()), "reports_by_check": dict(reports.most_common()),
         "reports_by_vehicle": {v: dict(c) for v, c in sorted(by_vehicle.items())},
+        "first_reports": first,
         "quarantined_frames": sum(len(v) for v in q_times.values()),
         "quarantined_vehicles": len(q_times),
         "quarantines": _quarantine_rows(q_times, first),
@@ -183,7 +191,6 @@ def offline(spec: str, config, per: float, seed: int, apps: bool) -> dict:
     if cam is not None:
         out["warnings"] = _warnings_lost(the_plan, new_cam(), names, warn_ticks, warn_events,
                                          simulate)
-    out["elapsed_s"] = round(time.perf_counter() - t_start, 2)
     return out
 
 

@@ -189,14 +189,16 @@ def _vehicle(vid: str, pieces: list[tuple[int, int, Track, np.ndarray]], frame: 
         _, _, up = frame.to_enu(v[_F["lat"]], v[_F["lon"]], v[_F["elev"]])
         v[_F["lat"]], v[_F["lon"]], v[_F["elev"]] = frame.to_geodetic(
             v[_F["x"]], v[_F["y"]], up)
-        if provenance.get("heading", "").startswith("derived") and n >= 3:
+        again = provenance.get("heading", "").startswith("derived") and v.shape[1] >= 3
+        if again:
             v[_F["heading"]] = derive.heading_from_track(v[_F["x"]], v[_F["y"]],
                                                          v[_F["speed"]])
             v[_F["yaw_rate"]] = derive.yaw_rate_from_heading(v[_F["heading"]])
         provenance["scene"] = (
             f"merged from {len(used)} trips' pieces; where they overlap the trip whose "
             f"host it is wins; position steps at junctions faded out over "
-            f"{TAPER_SAMPLES * DT:g} s; heading and yaw rate derived again")
+            f"{TAPER_SAMPLES * DT:g} s" + ("; heading and yaw rate derived again" if again
+                                           else ""))
     return Track(vid, *(v[_F[f]] for f in _FIELDS), length=best.length, width=best.width,
                  provenance=provenance)
 

@@ -1,9 +1,12 @@
 """Dataset specs on the command line (docs/architecture.md): ``PATH`` (kind detected from the
 content), ``KIND:PATH``, or ``scenario:NAME`` (a built-in scenario, ``hil/scenarios``).  A
-directory means every file in it that parses.  This is the one place that reads dataset files, for
-``rve run`` and for every ``captures`` command; the parsers in :mod:`catc.datasets` work on
-their text, or on their bytes when the file is not text (an OBU ``.bin`` log) or the kind
-is ``ode``.
+directory means every file in it that parses.  ``scene:SPEC`` (SPEC one of those, naming
+one file), optionally ending in ``?host=ID``, is every vehicle of that file's trips in one
+trip with one host (:mod:`catc.datasets.scene`; e.g.
+``scene:ngsim:../shared/data/ngsim-i80-pairs?host=232``).  This is the one place that
+reads dataset files, for ``rve run`` and for every ``captures`` command; the parsers in
+:mod:`catc.datasets` work on their text, or on their bytes when the file is not text (an
+OBU ``.bin`` log) or the kind is ``ode``.
 """
 
 from __future__ import annotations
@@ -11,7 +14,7 @@ from __future__ import annotations
 from importlib import resources
 from pathlib import Path
 
-from catc.datasets import KINDS, detect_kind, parse
+from catc.datasets import KINDS, detect_kind, parse, scene
 from catc.mobility import MobilityTable
 from hil.errors import InputError
 
@@ -28,6 +31,40 @@ def scenario_file(name: str) -> Path:
     if not path.is_file():
         raise DatasetError(f"unknown scenario {name!r} (see rve scenario --help)")
     return Path(str(path))
+
+
+#: The prefix of a scene spec, and what ends one to choose its host.
+SCENE, HOST = "scene:", "?host="
+
+
+def _resolve(spec: str) -> str:
+    """``scenario:NAME`` as the ``sumo:`` spec of its file; other specs as they are."""
+    if spec.startswith("scenario:"):
+        return f"sumo:{scenario_file(spec.split(':', 1)[1])}"
+    return spec
+
+
+def _scene(spec: str) -> list[tuple[Path, list[MobilityTable]]]:
+    """``scene:SPEC[?host=ID]``: the one table of every vehicle in the file SPEC names."""
+    inner, host = spec[len(SCENE):], None
+    if HOST in inner:
+        inner, host = inner.rsplit(HOST, 1)
+        if not host:
+            raise DatasetError(f"dataset {spec!r}: no vehicle after {HOST}")
+    if inner.startswith(SCENE):
+        raise DatasetError(f"dataset {spec!r}: a scene of a scene")
+    try:
+        files = [(f, tables) for f, tables in load_files(inner) if tables]
+    except DatasetError as err:
+        raise DatasetError(f"{err} (in {spec!r})") from None
+    if len(files) != 1:
+        raise DatasetError(f"dataset {spec!r}: a scene takes the trips of one file; "
+                           f"{inner!r} has {len(files)} ({', '.join(f.name for f, _ in files)})")
+    f, tables = files[0]
+    try:
+        return [(f, [scene.scene(tables, f.stem, host)])]
+    except ValueError as err:
+        raise DatasetError(f"dataset {spec!r}: {err}") from None
 
 
 def _split(spec: str) -> tuple[str | None, Path]:
@@ -49,13 +86,16 @@ def _read(f: Path) -> str | bytes:
 
 
 def load(spec: str) -> list[MobilityTable]:
-    """Every trip in ``spec`` (a file, a directory of files, optionally ``KIND:`` first)."""
+    """Every trip in ``spec`` (a file, a directory of files, optionally ``KIND:`` first;
+    ``scenario:NAME``; ``scene:...``, one trip)."""
     return [table for _, tables in load_files(spec) for table in tables]
 
 
 def load_files(spec: str) -> list[tuple[Path, list[MobilityTable]]]:
     """Like :func:`load`, grouped by the file each trip came from (only files that parsed)."""
-    kind, path = _split(spec)
+    if spec.startswith(SCENE):
+        return _scene(spec)
+    kind, path = _split(_resolve(spec))
     if not path.exists():
         raise DatasetError(f"dataset {spec!r}: no such file or directory")
     files = sorted(p for p in path.iterdir() if p.is_file()) if path.is_dir() else [path]
@@ -87,8 +127,6 @@ def load_table(spec: str, trip: str | None) -> MobilityTable:
     """The one trip of ``spec`` that ``rve run`` replays (``scenario:NAME`` too): ``trip``
     by name, or the first.  DatasetError (one line) when it cannot be loaded."""
     given = spec
-    if spec.startswith("scenario:"):
-        spec = f"sumo:{scenario_file(spec.split(':', 1)[1])}"
     tables = load(spec)
     if trip is None:
         return tables[0]

@@ -353,7 +353,9 @@ def test_a_full_disk_during_obu_run_is_one_line_and_keeps_what_was_written(tmp_p
                            preexec_fn=limited(64 * 1024))
     try:
         assert wait_bound(ports[:2], alive=lambda: obu.poll() is None)
-        run("rve.cli", "run", "--asap", "--no-progress", "--duration", "10",
+        # 40 s of data: the compact capture (obu.tracks.bin, obu.rx.jsonl.gz) writes a
+        # tenth of what JSON lines did, and the ticks' 64 kB must fill
+        run("rve.cli", "run", "--asap", "--no-progress", "--duration", "40",
             "--to", f"127.0.0.1:{ports[0]}", "--host-to", f"127.0.0.1:{ports[1]}")
         err = obu.communicate(timeout=30)[1].decode()
     finally:

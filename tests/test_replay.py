@@ -35,6 +35,7 @@ from catc.security import (
     sign_bsm,
     time64_to_unix,
 )
+from hil.capture import read_rx
 from hil.transport.udp import free_ports
 from obu.frames import Frames
 from obu.status import RateLimitedLog
@@ -187,9 +188,9 @@ def _frames(mode: str) -> tuple[Frames, list, _Capture]:
     checked: list[int] = []
     misbehaves = fr.misbehaves
 
-    def spy(bsm, rx_unix, data):
+    def spy(bsm, rx_unix, data, *rest):
         checked.append(bsm.msg_cnt)
-        return misbehaves(bsm, rx_unix, data)
+        return misbehaves(bsm, rx_unix, data, *rest)
 
     fr.misbehaves = spy
     return fr, checked, cap
@@ -241,7 +242,7 @@ def test_a_replayed_leader_is_not_quarantined_and_its_fcw_still_fires(pki, tmp_p
     summary = _run(pki, attacked, "--attack", "replay:vehicle=lead,delay=1,start=10")
     assert summary["attack_frames"] > 100
     # nobody quarantined, nothing reported, no check fired
-    rx = [json.loads(line) for line in (attacked / "obu.rx.jsonl").open()]
+    rx = list(read_rx(attacked))
     assert not [r for r in rx if r["status"] == "quarantined"]
     assert (attacked / "obu.mbr.jsonl").read_text() == ""
     counters = json.loads((attacked / "obu.counters.json").read_text())

@@ -17,12 +17,21 @@ the honest victim's; and it did not count the warnings the attack suppressed.
 from __future__ import annotations
 
 import argparse
+import json
 from collections import Counter
+from pathlib import Path
 
-from catc.bsm import BSM
-from catc.cam import SecMarkClock
-from catc.replay import temp_id
-from hil.capture import schema
+import numpy as np
+import pytest
+
+from catc.apps import SafetyApps
+from catc.bsm import BSM, msg_cnt, sec_mark
+from catc.cam import CamConfig, ContextAwareMap, SecMarkClock
+from catc.channel import CAUSES, ChannelConfig
+from catc.replay import plan, simulate, temp_id
+from hil.capture import JsonLines, schema
+from hil.datasets import load_table
+from obu.capture import ObuCapture
 from obu.frames import Frames
 from obu.status import RateLimitedLog
 
@@ -72,3 +81,186 @@ def test_the_rx_record_tells_a_quarantined_sender_from_a_dropped_copy():
                           why="copy")
     assert rec["status"] == "quarantined" and rec["why"] == "copy"
     assert "why" not in schema.received(1.0, "rv", b"", "ok", sender=(7, 3, 10_300))
+
+
+# --- a hand-made pair: the attacked run lost the leader's FCW and quarantined the leader ---
+
+
+@pytest.fixture(scope="module")
+def scene():
+    table = load_table("scenario:highway-braking", None)
+    the_plan = plan(table, ChannelConfig(), 0, None, DURATION)
+    cam = ContextAwareMap(CamConfig(predictor="ca"), SafetyApps())
+    snaps = list(simulate(the_plan, cam))
+    return table, the_plan, cam, snaps
+
+
+def _write(directory: Path, scene, attacked: bool) -> dict:
+    """One capture of ``scene`` (every message delivered, decided 10 ms after it was
+    sent).  ``attacked``: with ``--attack REPLAY``, every leader frame 1 s late again from
+    10 s on (dropped as copies), the leader reported at 15 s and its frames dropped from
+    then on (its sender quarantined), so no warning on it.  What it wrote."""
+    table, the_plan, cam, snaps = scene
+    directory.mkdir(parents=True)
+    ids = {v: temp_id(v) for v in the_plan.vehicles}
+    config = schema.rve_config(
+        {"dataset": "scenario:highway-braking", "duration": DURATION,
+         "attack": [REPLAY] if attacked else None}, {},
+        (table.name, table.kind, table.origin), the_plan.host_id, ids,
+        {"per": 0.0, "rate_hz": 10.0}, 0, T0, schema.new_run_id())
+    (directory / schema.RVE_CONFIG).write_text(json.dumps(config, default=str))
+    truth = JsonLines(directory / schema.RVE_TRUTH)
+    for v in the_plan.vehicles:
+        tr = table.tracks[v]
+        for i in np.flatnonzero(tr.t <= DURATION + 1e-9):
+            truth.write(schema.truth(v, ids[v], int(i), float(tr.t[i]), float(tr.lat[i]),
+                                     float(tr.lon[i]), float(tr.x[i]), float(tr.y[i]),
+                                     float(tr.speed[i]), float(tr.heading[i]),
+                                     float(tr.accel[i]), float(tr.yaw_rate[i]),
+                                     v == the_plan.host_id))
+    truth.close()
+    sched = JsonLines(directory / schema.RVE_SCHEDULE)
+    sent, copies = [], []
+    lead_seq: dict[float, int] = {}
+    for ev in the_plan.events:
+        v = the_plan.vehicles[int(ev["vehicle"])]
+        host = bool(ev["host"])
+        t = float(ev["t"])
+        rec = schema.scheduled(v, ids[v], "host" if host else "rv", int(ev["index"]),
+                               int(ev["seq"]), t, False, CAUSES[int(ev["cause"])], 0.0)
+        schema.sent(rec, T0 + t, 0.0, 40)
+        sched.write(rec)
+        if host:
+            continue
+        sent.append(rec)
+        if v == "lead":
+            lead_seq[round(t, 3)] = int(ev["seq"])
+            old = lead_seq.get(round(t - 1.0, 3))
+            if attacked and t >= 10.0 - 1e-9 and old is not None:
+                copy = schema.scheduled("lead", ids["lead"], "rv", -1, old, t - 1.0, False,
+                                        "attack", 0.0, attack="replay")
+                schema.sent(copy, T0 + t, 0.0, 40)
+                sched.write(copy)
+                copies.append(copy)
+    sched.close()
+    (directory / schema.RVE_END).write_text(json.dumps(schema.end(
+        config["run_id"], "clean", "replayed", T0, T0 + DURATION)))
+
+    obu = ObuCapture(directory, argparse.Namespace(mbd=True, overwrite=False,
+                                                   capture_max_mb=None, predictor="ca"))
+    f = cam.frame
+    obu.write_origin([f.lat0, f.lon0, f.h0])
+    pending = sorted(sent + copies, key=lambda r: r["sent_unix"])
+    quarantined = 0
+    for snap in snaps:
+        due = [r for r in pending if r["sent_unix"] <= T0 + snap.t + 1e-9]
+        pending = pending[len(due):]
+        for r in due:
+            sender = (int(r["id"], 16), msg_cnt(r["seq"]), sec_mark(r["t"]))
+            if r.get("attack"):
+                obu.rx.write(schema.received(r["sent_unix"], "rv", bytes(40), "quarantined",
+                                             sender=sender, why="copy"))
+            elif attacked and r["vehicle"] == "lead" and r["t"] >= QUARANTINE_T - 1e-9:
+                quarantined += 1
+                obu.rx.write(schema.received(r["sent_unix"], "rv", bytes(40), "quarantined",
+                                             sender=sender, why="quarantine"))
+            else:
+                obu.rx.write(schema.received(r["sent_unix"], "rv", bytes(40), "ok",
+                                             sender=sender, tick=snap.t,
+                                             decided_unix=r["sent_unix"] + 0.01))
+        hsm = sec_mark(snap.t)
+        tick = schema.tick(snap, hsm, 1.0, T0 + snap.t + 0.01)
+        if attacked and snap.t >= QUARANTINE_T - 1e-9:  # the leader's track is gone
+            tick["warnings"] = [w for w in tick["warnings"] if w[1] != LEAD]
+        obu.ticks.write(tick)
+        obu.tracks.write(snap.t, hsm, schema.track_columns(snap))
+        if attacked and abs(snap.t - QUARANTINE_T) < 1e-6:
+            obu.mbr.write({"t_unix": T0 + snap.t, "t": snap.t, "reporter": None,
+                           "suspect": LEAD, "check": "frequency", "score": 2.0,
+                           "evidence": {}, "other": None, "msgCnt": 0, "sec_mark": hsm,
+                           "hex": ""})
+    obu.close()
+    obu.write_end("clean", "idle", ticks=len(snaps))
+    fcw_on_lead = sum(1 for s in snaps for w in s.warnings
+                      if w.app == "fcw" and w.rv_id == ids["lead"])
+    lead = [r for r in sent if r["vehicle"] == "lead" and r["t"] >= QUARANTINE_T - 1e-9]
+    return {"fcw_on_lead": fcw_on_lead, "quarantined": quarantined, "copies": len(copies),
+            "lead_last_t": max(r["t"] for r in lead)}
+
+
+@pytest.fixture(scope="module")
+def pair(scene, tmp_path_factory):
+    root = tmp_path_factory.mktemp("pair")
+    _write(root / "clean", scene, attacked=False)
+    made = _write(root / "attacked", scene, attacked=True)
+    return root / "clean", root / "attacked", made
+
+
+def test_a_quarantined_replay_victim_is_a_false_positive_and_its_fcw_is_counted_lost(pair):
+    from captures.defence import compare
+
+    clean, attacked, made = pair
+    n = made["fcw_on_lead"]
+    assert n >= 10 and made["quarantined"] > 100 and made["copies"] > 100
+    r = compare(clean, attacked)
+    # the warnings the attack suppressed: the clean OBU's, and the true positives
+    assert r["lost"]["fcw"] == {"lead": n}
+    assert r["tp"]["fcw"]["lead"] == {"clean": n, "attacked": 0, "lost": n}
+    assert r["lost_tp"]["fcw"] == n
+    assert r["added"] == {}
+    # the leader, honest, quarantined: for how long and how many of its frames
+    q = r["honest"]["quarantined"]
+    assert list(q) == ["lead"]
+    assert q["lead"]["frames"] == q["lead"]["messages"] == made["quarantined"]
+    assert q["lead"]["first_t"] == QUARANTINE_T
+    assert q["lead"]["last_t"] == made["lead_last_t"]
+    assert q["lead"]["duration_s"] == pytest.approx(made["lead_last_t"] - QUARANTINE_T)
+    # the replayed copies were dropped as copies: not a quarantine
+    assert r["honest"]["other_drops"] == {"lead": {"copy": made["copies"]}}
+    assert r["honest"]["suspected"] == {"lead": {"reports": 1, "checks": {"frequency": 1}}}
+    assert r["clean_honest"] == {"suspected": {}, "quarantined": {}, "other_drops": {}}
+    # a replay has no id of its own: the one flagged id is the victim's
+    d = r["detection"]
+    assert d["precision"] == 0.0 and d["recall"] is None
+    assert d["false_positives"] == ["lead"] and d["true_positives"] == []
+    w = r["attack_warnings"]
+    assert w["replayed"]["ids"] == ["lead"] and w["replayed"]["added"] == {}
+    assert w["fabricated"] == {"ids": [], "ticks": {}, "added": {}}
+    # the clean twin against itself: nothing lost, nobody harmed
+    same = compare(clean, clean)
+    assert same["lost"] == same["added"] == same["lost_tp"] == {}
+    assert same["honest"] == same["clean_honest"]
+
+
+def test_captures_defence_cli(pair, capsys):
+    from captures.cli import main
+
+    clean, attacked, made = pair
+    assert main(["defence", str(clean), str(attacked)]) == 0
+    out = capsys.readouterr().out
+    (line,) = [x for x in out.splitlines() if x.startswith("lost TP ticks")]
+    assert f"fcw {made['fcw_on_lead']}" in line  # and the leader's EEBL
+    assert f"  fcw: lead {made['fcw_on_lead']} -> 0" in out
+    assert "honest vehicles quarantined: lead (" in out
+    assert "precision 0.0, recall None" in out
+    assert main(["defence", str(clean), str(attacked), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["lost_tp"]["fcw"] == made["fcw_on_lead"]
+    # the wrong way round, or two runs that are not twins: one line, status 2
+    assert main(["defence", str(attacked), str(clean)]) == 2
+    err = capsys.readouterr().err
+    assert "not a clean run" in err and len(err.strip().splitlines()) == 1
+
+
+def test_runs_that_are_not_twins_are_refused(pair, tmp_path):
+    import shutil
+
+    from captures.defence import compare
+
+    clean, attacked, _ = pair
+    other = tmp_path / "other"
+    shutil.copytree(attacked, other)
+    cfg = json.loads((other / schema.RVE_CONFIG).read_text())
+    cfg["channel"]["per"] = 0.3
+    (other / schema.RVE_CONFIG).write_text(json.dumps(cfg))
+    with pytest.raises(ValueError, match="not twins: channel"):
+        compare(clean, other)

@@ -232,6 +232,16 @@ def test_a_quarantined_replay_victim_is_a_false_positive_and_its_fcw_is_counted_
     assert same["honest"] == same["clean_honest"]
 
 
+def test_captures_score_no_longer_credits_the_victim_s_quarantine(pair):
+    """Before: recall 1.0 and precision 1.0 for the replay, the leader its 'attacker'."""
+    from captures.score import score
+
+    _, attacked, _ = pair
+    s = score(attacked)
+    assert "detection" not in s["attacks"]["replay"]
+    assert s["mbd"]["false_suspects"] == [LEAD]
+
+
 def test_captures_defence_cli(pair, capsys):
     from captures.cli import main
 

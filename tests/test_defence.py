@@ -274,3 +274,42 @@ def test_runs_that_are_not_twins_are_refused(pair, tmp_path):
     (other / schema.RVE_CONFIG).write_text(json.dumps(cfg))
     with pytest.raises(ValueError, match="not twins: channel"):
         compare(clean, other)
+
+
+# --- live: captures sweep's attack cells against their clean twins --------------------------
+
+
+def test_attack_checks_measure_a_replay_against_its_clean_twin():
+    """A replay of the leader, 1 s late from 10 s on, in the first 30 s of the default
+    scenario at 8x.  Under enforce+mbd the verifier's replay cache drops every copy: no
+    FCW tick lost, no honest vehicle suspected or quarantined.  Without a defence the
+    report is whatever the copies do, but consistent."""
+    from captures.live import attack_checks, attack_table
+
+    table = load_table("scenario:highway-braking", None)
+    rows = attack_checks("scenario:highway-braking", table, "ca", [REPLAY], [0.0],
+                         defences=["enforce+mbd", "none"], speed=8.0, duration=30.0)
+    mbd, none = rows
+    assert (mbd["defence"], none["defence"]) == ("enforce+mbd", "none")
+    vs = mbd["vs_clean"]
+    assert mbd["lost_tp"].get("fcw", 0) == 0 and "fcw" not in vs["lost"]
+    assert vs["tp"]["fcw"]["lead"]["clean"] > 0
+    assert mbd["honest_quarantined"] == {} and mbd["honest_suspected"] == []
+    assert mbd["precision_victims_fp"] is None  # nothing flagged
+    assert mbd["rejected"] == mbd["sent"] > 100  # every copy a replay
+    for r in rows:
+        vs = r["vs_clean"]
+        assert vs["ticks"]["compared"] > 250
+        for app, vehicles in vs["tp"].items():
+            for x in vehicles.values():
+                assert x["clean"] >= 0 and x["attacked"] >= 0
+                assert x["lost"] == x["clean"] - x["attacked"]
+            assert r["lost_tp"].get(app, 0) == sum(max(0, x["lost"])
+                                                   for x in vehicles.values())
+        assert all(n > 0 for c in vs["lost"].values() for n in c.values())
+        assert r["warning_ticks_fabricated"] == 0  # a replay makes no id
+        assert vs["attack_warnings"]["replayed"]["ids"] == ["lead"]
+    assert none["vs_clean"]["detection"] is None  # no detector to measure
+    assert none["honest_quarantined"] == {} and none["honest_suspected"] == []
+    text = attack_table(rows)
+    assert "lost TP" in text and "P/R vict FP" in text and len(text.splitlines()) == 3

@@ -16,6 +16,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 from captures import (
     decode,
+    defence,
     evaluate,
     plot,
     replay,
@@ -34,6 +35,8 @@ Capture-and-score post analysis for the V2X testbench.
 
   decode       print the BSMs in a file as JSON lines (raw UPER, hex, IEEE 1609.2,
                ODE OBU .bin logs, ODE JSON/XML records)
+  defence      what an attack cost against its clean twin: lost warnings, honest vehicles
+               suspected or quarantined, detection with victims as false positives
   evaluate     PTE95 of each predictor on real trips under seeded packet loss
   plot         bird's-eye views, PTE / messages / warnings timeline and GIF of a capture
   replay       run the CA-TC and the safety apps offline, print their warning events
@@ -49,6 +52,7 @@ Capture-and-score post analysis for the V2X testbench.
 def main(argv: list[str] | None = None) -> int:
     parser, sub = make_parser("captures", DESCRIPTION)
     decode.register(sub)
+    defence.register(sub)
     evaluate.register(sub)
     plot.register(sub)
     replay.register(sub)

@@ -162,35 +162,58 @@ DEFENCES = {"none": [], "enforce": ["--verify", "enforce"],
 
 def attack_checks(spec: str, table: MobilityTable, predictor: str, attacks: list[str],
                   pers: list[float], *, defences: list[str] | None = None, speed: float = 8.0,
-                  seed: int = 0, progress: TextIO | None = None) -> list[dict]:
+                  seed: int = 0, duration: float | None = None,
+                  progress: TextIO | None = None) -> list[dict]:
     """Each attack (``rve run --attack`` text) × PER × defence, live: the RVE signs with a
     fresh test PKI (one pseudonym per RV and one for an insider), the OBU runs with the
     defence's flags; one row per run with the FCW false alarms and missed warnings (FP and
     FN ticks against the ground truth), what the OBU accepted, rejected and quarantined of
-    the attack's frames, and detection recall, precision and time to detect."""
+    the attack's frames, and detection recall, precision and time to detect.  Against the
+    clean twin (the same run without the attack, run once per PER and defence,
+    :func:`captures.defence.compare`, the whole of it in ``vs_clean``): the TP ticks lost
+    by app, the warning ticks on fabricated ids and the ones on the attack's named
+    vehicles the clean run did not have, the honest vehicles suspected and quarantined,
+    and precision and recall in which a flagged victim is a false positive.
+    ``duration``: only the first S s of the trip (``rve run --duration``)."""
+    from captures.defence import compare
     from captures.score import score
     from hil.pki import init
 
     defences = list(DEFENCES) if defences is None else defences
     rows = []
     root = Path(tempfile.mkdtemp(prefix="catc-attack-"))
+    twins: dict[tuple[float, str], Path] = {}
+
+    def daemons(cap: Path, per: float, defence: str, *attack: str) -> None:
+        run_daemons(cap, ["--dataset", spec, "--trip", table.name, "--per", f"{per:g}",
+                          "--seed", str(seed), "--speed", f"{speed:g}", "--sign",
+                          str(root / "pki"), *attack,
+                          *([] if duration is None else ["--duration", f"{duration:g}"])],
+                    ["--predictor", predictor, "--trust", str(root / "pki"),
+                     *DEFENCES[defence]])
+
     try:
         init(root / "pki", max(2, len(table.tracks) + 1), 1.0, seed=f"sweep-{seed}")
         for k, attack in enumerate(attacks):
             kind = attack.partition(":")[0]
             for per in pers:
                 for defence in defences:
+                    clean = twins.get((per, defence))
+                    if clean is None:
+                        clean = twins[per, defence] = root / f"clean-{per:g}-{defence}"
+                        if progress:
+                            print(f"attack: clean twin, PER {per:g} %, defence {defence}, "
+                                  f"trip {table.name} ...", file=progress, flush=True)
+                        daemons(clean, per, defence)
                     cap = root / f"{k}-{kind}-{per:g}-{defence}"  # a new directory a run
                     if progress:
                         print(f"attack: {attack}, PER {per:g} %, defence {defence}, trip "
                               f"{table.name} ...", file=progress, flush=True)
-                    run_daemons(cap, ["--dataset", spec, "--trip", table.name, "--per",
-                                      f"{per:g}", "--seed", str(seed), "--speed",
-                                      f"{speed:g}", "--sign", str(root / "pki"),
-                                      "--attack", attack],
-                                ["--predictor", predictor, "--trust", str(root / "pki"),
-                                 *DEFENCES[defence]])
+                    daemons(cap, per, defence, "--attack", attack)
                     s = score(cap)
+                    vs = compare(clean, cap)
+                    det = vs["detection"] or {}
+                    warned = vs["attack_warnings"]
                     a = s["attacks"].get(kind, {})
                     d = a.get("detection", {})
                     ttd = list(d.get("time_to_detect_s", {}).values())
@@ -205,22 +228,46 @@ def attack_checks(spec: str, table: MobilityTable, predictor: str, attacks: list
                         "warnings_on_fabricated": a.get("warnings", {}),
                         "recall": d.get("recall"), "precision": d.get("precision"),
                         "time_to_detect_s": max(ttd) if ttd else None,
-                        "pte95_m": s["pte95_m"]})
+                        "pte95_m": s["pte95_m"],
+                        "lost_tp": vs["lost_tp"],
+                        "warning_ticks_fabricated": sum(warned["fabricated"]["ticks"].values()),
+                        "warning_ticks_misbehaving": sum(
+                            n for g in ("misbehaving", "replayed")
+                            for n in warned[g]["added"].values()),
+                        "honest_suspected": sorted(vs["honest"]["suspected"]),
+                        "honest_quarantined": vs["honest"]["quarantined"],
+                        "precision_victims_fp": det.get("precision"),
+                        "recall_victims_fp": det.get("recall"),
+                        # the directories are temporary: gone with the sweep
+                        "vs_clean": {k: v for k, v in vs.items()
+                                     if k not in ("clean", "attacked")}})
     finally:
         shutil.rmtree(root, ignore_errors=True)
     return rows
 
 
+def _num(x: float | None) -> str:
+    return "-" if x is None else f"{x:g}"
+
+
 def attack_table(rows: list[dict]) -> str:
-    """The attack rows as a text table."""
+    """The attack rows as a text table.  Against the clean twin: ``lost TP`` (TP ticks by
+    app), ``warned fab/mis`` (warning ticks on fabricated ids / ones on the attack's named
+    vehicles the clean run did not have), ``honest S/Q`` (honest vehicles suspected /
+    quarantined) and ``P/R vict FP`` (precision / recall with victims as false
+    positives)."""
     head = ["attack", "PER %", "defence", "FCW acc", "false alarms", "missed", "sent",
-            "accepted", "rejected", "quarantined", "recall", "precision", "detect s"]
+            "accepted", "rejected", "quarantined", "recall", "precision", "detect s",
+            "lost TP", "warned fab/mis", "honest S/Q", "P/R vict FP"]
     body = [[r["attack"], f"{r['per']:g}", r["defence"], f"{r['fcw_accuracy']}",
              str(r["false_alarms"]), str(r["missed"]), str(r["sent"]), str(r["accepted"]),
-             str(r["rejected"]), str(r["quarantined"]),
-             "-" if r["recall"] is None else f"{r['recall']:g}",
-             "-" if r["precision"] is None else f"{r['precision']:g}",
-             "-" if r["time_to_detect_s"] is None else f"{r['time_to_detect_s']:.2f}"]
+             str(r["rejected"]), str(r["quarantined"]), _num(r["recall"]),
+             _num(r["precision"]),
+             "-" if r["time_to_detect_s"] is None else f"{r['time_to_detect_s']:.2f}",
+             ", ".join(f"{a} {n}" for a, n in r["lost_tp"].items()) or "0",
+             f"{r['warning_ticks_fabricated']}/{r['warning_ticks_misbehaving']}",
+             f"{len(r['honest_suspected'])}/{len(r['honest_quarantined'])}",
+             f"{_num(r['precision_victims_fp'])}/{_num(r['recall_victims_fp'])}"]
             for r in rows]
     widths = [max(len(h), *(len(b[i]) for b in body)) for i, h in enumerate(head)]
     return "\n".join("  ".join(c.rjust(w) for c, w in zip(line, widths, strict=True))

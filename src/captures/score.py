@@ -411,8 +411,8 @@ def _detection(out: dict, cap: Capture, names: dict[str, str], mbr: list[dict]) 
     first_sent: dict[str, float] = {}  # id -> dataset time of its first attack frame
     for r in cap.iter_schedule():
         if r.get("attack") in out and "sent_unix" in r:
-            if r["attack"] in ("offset", "speed", "replay"):  # a real id misbehaving
-                attackers.setdefault(r["id"], r["attack"])
+            if r["attack"] in ("offset", "speed"):  # a real id misbehaving; a replay's
+                attackers.setdefault(r["id"], r["attack"])  # vehicle is its victim
             if r["id"] in attackers and attackers[r["id"]] == r["attack"]:
                 first_sent.setdefault(r["id"], r["t"])
     # the first report on each suspect, as the secMark of the message that raised it

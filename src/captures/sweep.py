@@ -124,7 +124,9 @@ def add_grid_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--attack", action="append", metavar="KIND[:KEY=VALUE,...]",
                    help="also run this attack (rve run --attack) live on the first dataset's "
                         "first trip at each --per, against each --defences (repeatable): "
-                        "FCW false alarms and misses, rejections, detection recall/precision")
+                        "FCW false alarms and misses, rejections, detection recall/precision; "
+                        "and against the same run without it (captures defence): TP ticks "
+                        "lost, honest vehicles suspected or quarantined")
     p.add_argument("--defences", type=partial(csv_list, str), default=None,
                    help="OBU defences of the attack runs: none, enforce, enforce+mbd "
                         "(default all three)")

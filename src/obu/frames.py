@@ -33,8 +33,10 @@ checked for misbehavior, counted, and an RV message queued for its tick.
   and a quarantine drops every id of its signer.  A copy of a message already heard, or
   one older than its sender's last (a replay: it needs no key), is dropped without a
   finding (``mbd_copy``, ``mbd_stale``).  All these frames are recorded with status
-  ``quarantined``.  Without ``--verify`` the evidence attaches to the TemporaryID, which
-  anyone can claim: that mode cannot resist id theft.
+  ``quarantined`` and why (``why``: ``quarantine``, its sender's; ``copy``, ``stale``,
+  ``id-conflict``), so a capture tells a quarantined sender from a dropped copy.
+  Without ``--verify`` the evidence attaches to the TemporaryID, which anyone can claim:
+  that mode cannot resist id theft.
 * The queue: a decoded RV message waits in :attr:`Frames.pending` until the tick it is due
   at (:meth:`Frames.due`, :mod:`obu.tick`).
 """
@@ -239,7 +241,8 @@ class Frames:
                     self.counters["mbd_tracks_dropped"] += 1
         if self.cap is not None:
             self.cap.frame(rx_unix, "rv", data, "quarantined",
-                           sender=(bsm.temp_id, bsm.msg_cnt, bsm.sec_mark))
+                           sender=(bsm.temp_id, bsm.msg_cnt, bsm.sec_mark),
+                           why=mbd.dropped or "quarantine")
         return True
 
     def due(self, now: float, future_s: float) -> list[BSM]:

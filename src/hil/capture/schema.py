@@ -254,12 +254,15 @@ def end(run_id: str, exit: str, reason: str, started_unix: float, ended_unix: fl
 
 def received(rx_unix: float, channel: str, data: bytes, status: str, *,
              sender: tuple[int, int, int | None] | None = None, verdict: str | None = None,
-             tick: float | None = None, decided_unix: float | None = None
-             ) -> dict[str, Any]:
+             tick: float | None = None, decided_unix: float | None = None,
+             why: str | None = None) -> dict[str, Any]:
     """One received frame (``obu.rx.jsonl.gz``) and what became of it: ``status`` is ``ok``
     (stepped at ``tick``, decided at ``decided_unix``), ``unticked`` (received after the
     last host frame), ``rejected`` (failed IEEE 1609.2 verification under enforce),
-    ``quarantined`` (its sender is in misbehavior quarantine) or the decode error's reason.
+    ``quarantined`` (dropped by misbehavior detection, ``why``: ``quarantine``, its
+    sender is in quarantine; ``copy`` or ``stale``, a replayed message, no evidence
+    against anyone; ``id-conflict``, an id another certificate holds; captures before
+    2026-11-28 have no ``why``) or the decode error's reason.
     ``sender`` is what the frame says of itself, (TemporaryID, msgCnt, secMark), where it
     decodes; ``verdict`` the 1609.2 verdict where frames are verified.  The frame's octets
     are kept in hex, so ``captures decode`` can decode the capture again."""
@@ -267,6 +270,8 @@ def received(rx_unix: float, channel: str, data: bytes, status: str, *,
     if sender is not None:
         record.update(id=hex_id(sender[0]), msgCnt=sender[1], sec_mark=sender[2])
     record["status"] = status
+    if why is not None:
+        record["why"] = why
     if verdict is not None:
         record["verdict"] = verdict
     if tick is not None:

@@ -262,9 +262,10 @@ def live(spec: str, per: float, seed: int, speed: float) -> dict:
             reports[r["check"]] += 1
             by_vehicle[names.get(r["suspect"], r["suspect"])][r["check"]] += 1
         q: Counter = Counter()
-        for line in (cap / "obu.rx.jsonl").read_text().splitlines():
-            r = json.loads(line)
-            if r.get("status") == "quarantined":
+        from hil.capture import read_rx
+
+        for r in read_rx(cap):  # a quarantine, not a dropped copy (rx "why")
+            if r.get("status") == "quarantined" and r.get("why", "quarantine") == "quarantine":
                 q[names.get(r["id"], r["id"])] += 1
         return {"spec": spec, "speed": speed, "per": per, "seed": seed,
                 "rv_frames": counters.get("frames_rv"),

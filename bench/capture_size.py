@@ -209,7 +209,8 @@ def run_once(root: Path, name: str, fcd: Path, args: argparse.Namespace, storm: 
                                                   "cam_confirmed", "cam_table_full",
                                                   "cam_displaced", "tick_ms_p99",
                                                   "transport_frames", "lag_ms_p50",
-                                                  "lag_ms_p99", "deadline_misses")},
+                                                  "lag_ms_p99", "host_lag_ms_p50",
+                                                  "host_lag_ms_p99", "deadline_misses")},
            "score_s": round(score_s, 2), "score_rss_mb": round(rss_mb, 1)}
     if score is not None:
         row["score"] = {k: score.get(k) for k in ("sent", "received", "dropped", "rejected",
@@ -220,6 +221,8 @@ def run_once(root: Path, name: str, fcd: Path, args: argparse.Namespace, storm: 
         # decision): they must agree (issue 27: within 10 %)
         row["score"]["obu_lag_p50_ms"] = counters.get("lag_ms_p50")
         row["score"]["obu_lag_p99_ms"] = counters.get("lag_ms_p99")
+        row["score"]["obu_tick_lag_p50_ms"] = counters.get("host_lag_ms_p50")
+        row["score"]["obu_tick_lag_p99_ms"] = counters.get("host_lag_ms_p99")
         row["score"]["phantom_tracks"] = (score.get("phantom") or {}).get("tracks")
         row["score"]["phantom_received"] = score.get("phantom_received")
         row["score"]["coverage"] = (score.get("run") or {}).get("coverage")
@@ -298,7 +301,8 @@ def main() -> int:
     for label, key in (("score RSS MB", "score_rss_mb"), ("score s", "score_s")):
         print(f"{label:<22}" + "".join(f"{r[key]:>10}" for r in rows))
     for key in ("sent", "received", "phantom_received", "phantom_tracks", "latency_p50_ms",
-                "obu_lag_p50_ms", "latency_p99_ms", "obu_lag_p99_ms", "pte95_m", "coverage"):
+                "obu_lag_p50_ms", "obu_tick_lag_p50_ms", "latency_p99_ms", "obu_lag_p99_ms",
+                "obu_tick_lag_p99_ms", "pte95_m", "coverage"):
         print(f"{key:<22}" + "".join(f"{(r.get('score') or {}).get(key)!s:>10}"
                                      for r in rows))
     for r in rows:

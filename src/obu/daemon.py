@@ -74,8 +74,9 @@ class Obu:
         A tick misses its deadline (``deadline_misses``) when its step takes longer than
         the tick period (``deadline_misses_step``) or when it is decided more than a tick
         period after its host frame arrived (``deadline_misses_late``: the OBU is behind,
-        its data older than the deadline).  The lag from each message's arrival to the
-        decision is kept (:class:`obu.status.Lags`)."""
+        its data older than the deadline).  The lag from each message's arrival (or from
+        the host frame's, for a message that came before it) to the decision is kept
+        (:class:`obu.status.Lags`)."""
         now = self.clock(host.sec_mark)
         due = self.frames.due(now, self.cam.config.max_future_s)
         t0 = time.perf_counter()
@@ -96,7 +97,12 @@ class Obu:
         self.counters["deadline_misses_late"] += late
         self.counters["deadline_misses"] += slow or late
         received = self.frames.received(due)
-        lags = [(decided - rx) * 1000.0 for _, rx, _, _ in received if rx is not None]
+        # from arrival, or from the host frame's when the message came before it: no
+        # message can be used before the host frame that ticks it (a message dated ahead
+        # of the host waits for its tick by rule, not because the OBU is behind)
+        start = self.host_arrival
+        lags = [(decided - max(rx, start)) * 1000.0 for _, rx, _, _ in received
+                if rx is not None]
         self.status.lag.add(lags)
         self.status.lag_recent.add(lags)
         self.status.host_lag.add([(decided - self.host_arrival) * 1000.0])

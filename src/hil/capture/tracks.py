@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from hil.errors import write_error
+from hil.capture.writers import CaptureFile
 
 __all__ = ["FIELDS", "MAGIC", "TrackBlock", "TrackWriter", "block_rows", "iter_blocks",
            "read_columns"]
@@ -132,16 +132,14 @@ def _decode_ref(e: np.ndarray) -> np.ndarray:
     return np.cumsum(e.astype(np.int64) + 1) - 1
 
 
-class TrackWriter:
+class TrackWriter(CaptureFile):
     """``obu.tracks.bin`` written a tick at a time: :meth:`write` the columns of
     :func:`hil.capture.schema.track_columns` (one block), :meth:`flush`, :meth:`close`.
     ``tell()`` is the file's size so far."""
 
     def __init__(self, path: str | os.PathLike) -> None:
-        self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._f = open(self.path, "wb")  # noqa: SIM115
-        self._f.write(MAGIC)
+        super().__init__(path, "wb")
+        self._put(MAGIC)
         self._state = _State()
         self.rows = 0
 
@@ -182,27 +180,6 @@ class TrackWriter:
         self._put(_BLOCK.pack(_BLOCK_MAGIC, len(payload), zlib.crc32(payload)) + payload)
         self.rows += n
 
-    def _put(self, data: bytes) -> None:
-        try:
-            self._f.write(data)
-        except OSError as err:  # a full disk: one line that names the file
-            raise write_error(err, self.path) from None
-
-    def tell(self) -> int:
-        return self._f.tell()
-
-    def flush(self) -> None:
-        try:
-            self._f.flush()
-        except OSError as err:
-            raise write_error(err, self.path) from None
-
-    def close(self) -> None:
-        if not self._f.closed:
-            try:
-                self._f.close()
-            except OSError as err:
-                raise write_error(err, self.path) from None
 
 
 @dataclass(frozen=True)

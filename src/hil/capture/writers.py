@@ -40,8 +40,8 @@ from typing import IO, Any
 
 from hil.errors import write_error
 
-__all__ = ["CanLogs", "GzipJsonLines", "JsonLines", "PcapngWriter", "can_log", "claim",
-           "ethernet", "finish", "udp_packet", "versions"]
+__all__ = ["CanLogs", "CaptureFile", "GzipJsonLines", "JsonLines", "PcapngWriter", "can_log",
+           "claim", "ethernet", "finish", "udp_packet", "versions"]
 
 _DAEMONS = {"rve": "an RVE", "obu": "an OBU"}
 
@@ -76,7 +76,7 @@ def versions() -> dict[str, str]:
     return {"catc-hil": own, "python": sys.version.split()[0]}
 
 
-class _CaptureFile:
+class CaptureFile:
     """A capture file opened for writing (its directory made), flushed and closed."""
 
     def __init__(self, path: str | os.PathLike, mode: str) -> None:
@@ -111,7 +111,7 @@ class _CaptureFile:
                 raise write_error(err, self.path) from None
 
 
-class JsonLines(_CaptureFile):
+class JsonLines(CaptureFile):
     """Append-only JSON lines at ``path`` (created with its directory)."""
 
     def __init__(self, path: str | os.PathLike) -> None:
@@ -129,7 +129,7 @@ class JsonLines(_CaptureFile):
         return self._size
 
 
-class GzipJsonLines(_CaptureFile):
+class GzipJsonLines(CaptureFile):
     """JSON lines in one gzip stream at ``path`` (module docstring), created anew."""
 
     LEVEL = 6  # 1 is 15 % larger on a storm's frames for half the CPU; both are cheap
@@ -203,7 +203,7 @@ def ethernet(dst: bytes, src: bytes, ethertype: int, payload: bytes) -> bytes:
     return bytes(dst) + bytes(src) + struct.pack("!H", ethertype) + bytes(payload)
 
 
-class PcapngWriter(_CaptureFile):
+class PcapngWriter(CaptureFile):
     """Append-only pcapng: interface 0 carries raw IP packets (link type RAW), interface 1
     Ethernet frames (link type ETHERNET: WSMP on ethertype 0x88DC);
     ``write(packet, t_unix, interface=0)``, ``flush()``."""

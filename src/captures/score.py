@@ -316,9 +316,7 @@ def score(directory: Path) -> dict:
                        "p99": round(float(np.percentile(lat_ms, 99)), 3),
                        "max": round(float(lat_ms.max()), 3)} if len(lat_ms) else None,
         # the OBU fell behind: decisions over a tick period after the message was sent
-        "late": {"messages": int((lat_ms > TICK_MS).sum()),
-                 "share": round(float((lat_ms > TICK_MS).mean()), 4) if len(lat_ms) else 0.0,
-                 "lagging": bool(len(lat_ms) and np.percentile(lat_ms, 99) > TICK_MS)},
+        "late": _late(lat_ms),
         "warnings": dict(Counter(f"{e['app']}" for e in events if e["kind"] == "start")),
         "events": events,
         # accepted frames of ids the RVE never sent
@@ -336,6 +334,15 @@ def score(directory: Path) -> dict:
         "dataset": rve_cfg["dataset"]["name"],
     }
     return result
+
+
+def _late(lat_ms: np.ndarray) -> dict:
+    """The messages decided over a tick period after they were sent, and whether the
+    run lagged (latency p99 over the tick period)."""
+    late = lat_ms > TICK_MS
+    return {"messages": int(late.sum()),
+            "share": round(float(late.mean()), 4) if len(lat_ms) else 0.0,
+            "lagging": bool(len(lat_ms) and np.percentile(lat_ms, 99) > TICK_MS)}
 
 
 def _phantoms(first: dict[int, float], last: dict[int, float], events: list[dict],

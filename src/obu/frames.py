@@ -124,6 +124,7 @@ class Frames:
         # BSM, rx unix, its time on the host's clock
         self.host_rx: dict[int, float] = {}  # id(host BSM) -> rx unix, until its tick
         self.gate = HostGate(getattr(args, "host_id", None))
+        self.last_signer: bytes | None = None  # the HashedId8 of the last verified frame
         self.enforce = args.verify == "enforce"
 
     def take(self, channel: str, data: bytes, rx_unix: float) -> BSM | None:

@@ -567,7 +567,14 @@ def test_the_first_look_at_the_live_state_gets_the_newest_tick(tmp_path):
     ports = free_ports()
     obu = start_obu(tmp_path, ports, "--predictor", "ca", "--web", str(web))
     try:
-        rve(ports, "--asap", "--duration", "3", "--capture", str(tmp_path))
+        sent = rve(ports, "--asap", "--duration", "3", "--capture", str(tmp_path))
+        # the RVE is done when its last host frame is sent; the OBU may still be stepping
+        # it: wait (bounded) until every host frame is a tick in the capture
+        ticks = tmp_path / "obu.ticks.jsonl"
+        deadline = time.monotonic() + 10
+        while len(ticks.read_text().splitlines()) < sent["host_frames"]:
+            assert time.monotonic() < deadline, "the OBU did not step every host frame"
+            time.sleep(0.05)
         with urllib.request.urlopen(f"http://127.0.0.1:{web}/api/state", timeout=10) as r:
             state = json.loads(r.read())
         assert obu.poll() is None  # still running (--idle-exit 2): a live answer

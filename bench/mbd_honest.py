@@ -1,6 +1,6 @@
-"""Misbehavior detection on honest traffic: every report and quarantine is a false positive.
+"""Misbehavior detection on honest traffic: every finding and quarantine is a false positive.
 
-No vehicle misbehaves in a replayed dataset, so whatever ``catc.mbd`` reports there is a
+No vehicle misbehaves in a replayed dataset, so whatever ``catc.mbd`` finds there is a
 false positive, and a quarantine costs the host real warnings.  For each dataset (default:
 the dense NGSIM I-80 scene, ``scene:ngsim:../shared/data/ngsim-i80-pairs``, 45 RVs, and
 ``scenario:highway-braking``) this replays the RVE's plan (``catc.replay.plan``, PER 0 by
@@ -15,18 +15,20 @@ feeds it (``obu.frames.Frames.misbehaves``):
 * the host frame steps a :class:`catc.cam.ContextAwareMap` (predictor ``ca``, every safety
   app) with the frames due (:func:`catc.replay.split_due`).
 
-It prints the reports by check and by vehicle (the JSON has each vehicle's first report,
-its time and distance from the host), each quarantined vehicle (its first report, how
-far from the host, how long it stayed in quarantine, frames dropped), and the
-warnings the quarantines cost: the same map fed every frame (no MBD) against the map
+It prints the findings by check and by vehicle (the JSON has each vehicle's first finding,
+its time, distance and place from the host), the reports (findings past the reporting
+threshold, :attr:`catc.mbd.MisbehaviorDetector.reports`), each quarantined vehicle (its
+first finding, how far from the host, how long it stayed in quarantine, frames dropped),
+and the warnings the quarantines cost: the same map fed every frame (no MBD) against the map
 with MBD, warning ticks (tick x vehicle) and warning events per app.  ``--set KEY=VALUE``
 changes an :class:`catc.mbd.MbdConfig` threshold, to tune the detector against these
 numbers.  An offline pass over both datasets takes ~15 s.
 
 ``--live`` runs the same through the daemons instead (``obu run --verify off --mbd
 --predictor ca`` and ``rve run --speed S``, UDP on 127.0.0.1, ~20 s per dataset at
-``--speed 4``) and reads the capture: ``obu.mbr.jsonl`` (reports), ``obu.rx.jsonl``
-(frames with status ``quarantined``) and ``obu.counters.json`` (``mbd_quarantined``).
+``--speed 4``) and reads the capture: ``obu.mbd.jsonl`` (findings), ``obu.mbr.jsonl``
+(reports), ``obu.rx.jsonl`` (frames with status ``quarantined``) and
+``obu.counters.json`` (``mbd_quarantined``).
 The two should agree up to the UDP arrival order and the live host-freshness window
 (0.5 s of wall clock).
 
@@ -93,12 +95,12 @@ def _scene_info(table) -> dict:
 
 
 def _quarantine_rows(times: dict[str, list[float]], first: dict[str, dict]) -> dict:
-    """Per quarantined vehicle: its first report and how long its frames were dropped."""
+    """Per quarantined vehicle: its first finding and how long its frames were dropped."""
     out = {}
     for vid in sorted(times, key=lambda v: times[v][0]):
         ts = times[vid]
         f = first.get(vid, {})
-        out[vid] = {"first_report": f.get("check"), "at_s": f.get("at_s"),
+        out[vid] = {"first_finding": f.get("check"), "at_s": f.get("at_s"),
                     "distance_m": f.get("distance_m"), "frames": len(ts),
                     "from_s": round(ts[0], 2), "to_s": round(ts[-1], 2),
                     "quarantined_s": round(ts[-1] - ts[0] + 0.1, 1)}
@@ -135,7 +137,8 @@ def measure(table, config, per: float = 0.0, seed: int = 0, apps: bool = True) -
     last_host = None  # (bsm, its plan time, its time on the host's clock)
     t0 = None  # the first host frame's clock time
     pending = []
-    reports: Counter = Counter()
+    findings: Counter = Counter()
+    reported: Counter = Counter()
     by_vehicle: dict[str, Counter] = defaultdict(Counter)
     first: dict[str, dict] = {}
     q_times: dict[str, list[float]] = defaultdict(list)
@@ -164,13 +167,18 @@ def measure(table, config, per: float = 0.0, seed: int = 0, apps: bool = True) -
         hb, h_time, t = last_host
         fresh = float(ev["time"]) - h_time <= HOST_FRESH_S
         found = mbd.observe(m, t, hb.lat if fresh else None, hb.lon if fresh else None,
-                            host_heading=hb.heading if fresh else None)
+                            host_heading=hb.heading if fresh else None,
+                            host_speed=hb.speed if fresh else None,
+                            host_yaw_rate=hb.yaw_rate if fresh else None)
         vid = names.get(m.temp_id, f"{m.temp_id:08X}")
+        reported.update(d.check for d in mbd.reports)
         for d in found:
-            reports[d.check] += 1
+            findings[d.check] += 1
             by_vehicle[vid][d.check] += 1
             first.setdefault(vid, {"check": d.check, "at_s": round(t - t0, 2),
-                                   "distance_m": d.evidence.get("distance_m")})
+                                   "distance_m": d.evidence.get("distance_m"),
+                                   "along_m": d.evidence.get("along_m"),
+                                   "across_m": d.evidence.get("across_m")})
         if mbd.quarantined(m.temp_id, t):
             q_times[vid].append(t - t0)
             pending = [p for p in pending if p.temp_id != m.temp_id]
@@ -181,9 +189,10 @@ def measure(table, config, per: float = 0.0, seed: int = 0, apps: bool = True) -
     out = {
         "table": table.name, **_scene_info(table), "per": per, "seed": seed,
         "rv_frames": rv_frames, "unchecked_before_host": no_host,
-        "reports": sum(reports.values()), "reports_by_check": dict(reports.most_common()),
-        "reports_by_vehicle": {v: dict(c) for v, c in sorted(by_vehicle.items())},
-        "first_reports": first,
+        "findings": sum(findings.values()), "findings_by_check": dict(findings.most_common()),
+        "findings_by_vehicle": {v: dict(c) for v, c in sorted(by_vehicle.items())},
+        "first_findings": first,
+        "reports": sum(reported.values()), "reports_by_check": dict(reported.most_common()),
         "quarantined_frames": sum(len(v) for v in q_times.values()),
         "quarantined_vehicles": len(q_times),
         "quarantines": _quarantine_rows(q_times, first),
@@ -255,12 +264,14 @@ def live(spec: str, per: float, seed: int, speed: float) -> dict:
                  ["vehicles"].items()}
         counters = json.loads((cap / "obu.counters.json").read_text())
         counters = counters.get("obu", counters)
-        reports: Counter = Counter()
+        findings: Counter = Counter()
         by_vehicle: dict[str, Counter] = defaultdict(Counter)
-        for line in (cap / "obu.mbr.jsonl").read_text().splitlines():
+        for line in (cap / "obu.mbd.jsonl").read_text().splitlines():
             r = json.loads(line)
-            reports[r["check"]] += 1
+            findings[r["check"]] += 1
             by_vehicle[names.get(r["suspect"], r["suspect"])][r["check"]] += 1
+        reported = Counter(json.loads(line)["check"] for line in
+                           (cap / "obu.mbr.jsonl").read_text().splitlines())
         q: Counter = Counter()
         from hil.capture import read_rx
 
@@ -269,8 +280,11 @@ def live(spec: str, per: float, seed: int, speed: float) -> dict:
                 q[names.get(r["id"], r["id"])] += 1
         return {"spec": spec, "speed": speed, "per": per, "seed": seed,
                 "rv_frames": counters.get("frames_rv"),
-                "reports": sum(reports.values()), "reports_by_check": dict(reports.most_common()),
-                "reports_by_vehicle": {v: dict(c) for v, c in sorted(by_vehicle.items())},
+                "findings": sum(findings.values()),
+                "findings_by_check": dict(findings.most_common()),
+                "findings_by_vehicle": {v: dict(c) for v, c in sorted(by_vehicle.items())},
+                "reports": sum(reported.values()),
+                "reports_by_check": dict(reported.most_common()),
                 "quarantined_frames": sum(q.values()),
                 "mbd_quarantined": counters.get("mbd_quarantined", 0),
                 "quarantined_vehicles": len(q), "quarantined_frames_by_vehicle": dict(q),
@@ -284,19 +298,19 @@ def _print(r: dict) -> None:
     near = f"; RVs within 300 m mean {near['mean']:g}, max {near['max']}" if near else ""
     print(f"\n{r['spec']}  ({size}{near}; PER {r['per']:g} %, seed {r['seed']}; "
           f"{r['elapsed_s']:g} s)")
-    print(f"  RV frames {r['rv_frames']}, reports {r['reports']}, frames dropped in "
-          f"quarantine {r['quarantined_frames']}, vehicles quarantined "
+    print(f"  RV frames {r['rv_frames']}, findings {r['findings']}, reports {r['reports']}, "
+          f"frames dropped in quarantine {r['quarantined_frames']}, vehicles quarantined "
           f"{r['quarantined_vehicles']}")
-    for check, n in r["reports_by_check"].items():
-        who = ", ".join(f"{v} {c[check]}" for v, c in r["reports_by_vehicle"].items()
+    for check, n in r["findings_by_check"].items():
+        who = ", ".join(f"{v} {c[check]}" for v, c in r["findings_by_vehicle"].items()
                         if check in c)
         print(f"  {check:<22} {n:>5}   {who}")
     if r.get("quarantines"):
-        print(f"  {'quarantined':<12} {'first report':<20} {'at s':>6} {'dist m':>7} "
+        print(f"  {'quarantined':<12} {'first finding':<20} {'at s':>6} {'dist m':>7} "
               f"{'for s':>6} {'frames':>6}")
         for vid, q in r["quarantines"].items():
             dist = "-" if q["distance_m"] is None else f"{q['distance_m']:.1f}"
-            print(f"  {vid:<12} {q['first_report'] or '-':<20} {q['at_s']:>6} {dist:>7} "
+            print(f"  {vid:<12} {q['first_finding'] or '-':<20} {q['at_s']:>6} {dist:>7} "
                   f"{q['quarantined_s']:>6} {q['frames']:>6}")
     elif r.get("quarantined_frames_by_vehicle"):
         print("  quarantined frames: " + ", ".join(
@@ -346,7 +360,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(out, indent=1))
         return 0
     changes = ", ".join(args.set) or "defaults"
-    print(f"catc.mbd on honest traffic ({out['mode']}; MbdConfig {changes}): every report "
+    print(f"catc.mbd on honest traffic ({out['mode']}; MbdConfig {changes}): every finding "
           "is a false positive")
     for r in results:
         _print(r)

@@ -72,6 +72,28 @@ def test_the_ghost_is_ahead_of_the_host_on_its_path_and_brakes():
     assert abs(float(heading_diff_deg(g0.heading, hdg))) < 3.0
 
 
+def test_an_impersonator_sends_under_its_victim_s_id_where_it_is_told():
+    """``impersonate``: an insider sending under another vehicle's TemporaryID (issue 28:
+    nothing but the receiver binds an id to the certificate that signs it), on the host
+    (``ahead=0``) at its speed, with a message count of its own."""
+    from catc.geo import distance_m
+    from catc.replay import temp_id
+
+    the_plan = _default_plan()
+    attacks = Attacks([parse("impersonate:vehicle=lead,start=10,duration=0.2")], the_plan)
+    host = the_plan.table.tracks[the_plan.host_id]
+    t0 = float(the_plan.events["t"][0])
+    assert attacks.injected(t0 + 9.9) == [] and attacks.injected(t0 + 10.2) == []
+    (a,), (b,) = attacks.injected(t0 + 10.0), attacks.injected(t0 + 10.1)
+    assert a.bsm.temp_id == b.bsm.temp_id == temp_id("lead") and a.attack.kind == "impersonate"
+    assert (a.bsm.msg_cnt, b.bsm.msg_cnt) == (0, 1)
+    hlat, hlon, v = (float(np.interp(t0 + 10.0, host.t, c))
+                     for c in (host.lat, host.lon, host.speed))
+    assert float(distance_m(hlat, hlon, a.bsm.lat, a.bsm.lon)) < 0.5
+    assert a.bsm.speed == pytest.approx(v)
+    assert parse("impersonate").params["signer"] == "insider"
+
+
 def test_sybil_ids_follow_their_sender_and_modifications_are_bounded():
     the_plan = _default_plan()
     attacks = Attacks([parse("sybil:vehicle=lead,count=3,spacing=8,start=2"),
@@ -155,6 +177,7 @@ def test_misbehavior_detection_quarantines_the_insider_ghost_before_any_warning(
     reports = [json.loads(line) for line in (tmp_path / "obu.mbr.jsonl").open()]
     first = next(r for r in reports if r["suspect"] == insider)
     assert first["check"] == "sudden-appearance" and first["msgCnt"] == 0
+    assert first["found_t"] == first["t"]  # a strong finding: reported at once
     assert {"reporter", "suspect", "check", "evidence", "hex"} <= set(first)
 
 
@@ -168,6 +191,7 @@ def test_misbehavior_detection_reports_nothing_on_a_clean_run(tmp_path):
         rve(ports, "--per", "30", "--seed", "2", "--speed", "8", "--duration", "30",
             "--capture", str(cap))
         finish(obu)
+    assert (with_mbd / "obu.mbd.jsonl").read_text() == ""  # no finding, so no report
     assert (with_mbd / "obu.mbr.jsonl").read_text() == ""
     counters = json.loads((with_mbd / "obu.counters.json").read_text())
     assert not [k for k in counters if k.startswith("mbd_") and k != "mbd_no_host_yet"]

@@ -52,6 +52,9 @@ class _Capture:
     def frame(self, rx_unix, channel, data, status, **details) -> None:
         self.frames.append((status, details))
 
+    def finding(self, *args) -> None:
+        pass
+
     def report(self, *args) -> None:
         pass
 
@@ -175,10 +178,12 @@ def _write(directory: Path, scene, attacked: bool) -> dict:
         obu.ticks.write(tick)
         obu.tracks.write(snap.t, hsm, schema.track_columns(snap))
         if attacked and abs(snap.t - QUARANTINE_T) < 1e-6:
-            obu.mbr.write({"t_unix": T0 + snap.t, "t": snap.t, "reporter": None,
-                           "suspect": LEAD, "check": "frequency", "score": 2.0,
-                           "evidence": {}, "other": None, "msgCnt": 0, "sec_mark": hsm,
-                           "hex": ""})
+            finding = {"t_unix": T0 + snap.t, "t": snap.t, "reporter": None,
+                       "suspect": LEAD, "check": "frequency", "score": 2.0,
+                       "evidence": {}, "other": None, "msgCnt": 0, "sec_mark": hsm,
+                       "hex": ""}
+            obu.mbd_log.write(finding)
+            obu.mbr.write({**finding, "found_t": snap.t})
     obu.close()
     obu.write_end("clean", "idle", ticks=len(snaps))
     fcw_on_lead = sum(1 for s in snaps for w in s.warnings
@@ -217,7 +222,8 @@ def test_a_quarantined_replay_victim_is_a_false_positive_and_its_fcw_is_counted_
     assert q["lead"]["duration_s"] == pytest.approx(made["lead_last_t"] - QUARANTINE_T)
     # the replayed copies were dropped as copies: not a quarantine
     assert r["honest"]["other_drops"] == {"lead": {"copy": made["copies"]}}
-    assert r["honest"]["suspected"] == {"lead": {"reports": 1, "checks": {"frequency": 1}}}
+    assert r["honest"]["suspected"] == {
+        "lead": {"findings": 1, "reports": 1, "checks": {"frequency": 1}}}
     assert r["clean_honest"] == {"suspected": {}, "quarantined": {}, "other_drops": {}}
     # a replay has no id of its own: the one flagged id is the victim's
     d = r["detection"]

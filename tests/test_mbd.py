@@ -47,11 +47,12 @@ def _shift(m: BSM, east: float, north: float) -> BSM:
                                lon=m.lon + east / (k * math.cos(math.radians(m.lat))))
 
 
-def _stream(the_plan, extra=(), modify=None, wire=False):
+def _stream(the_plan, extra=(), modify=None, wire=False, hosted=False):
     """``(time, bsm, host_lat, host_lon)`` of every delivered RV frame of ``the_plan`` in
     arrival order, with ``extra`` ``(time, bsm)`` frames merged in and ``modify(vehicle,
     bsm) -> bsm | None`` applied to the plan's frames.  The host position is the host's
-    latest frame (what the OBU knows), None once that is over 0.5 s old."""
+    latest frame (what the OBU knows), None once that is over 0.5 s old.  ``hosted``:
+    ``(time, bsm, host_bsm)`` instead, the host's frame None when over 0.5 s old."""
     if wire:
         from catc.j2735 import decode_frame, encode_frame
     items = []
@@ -62,24 +63,43 @@ def _stream(the_plan, extra=(), modify=None, wire=False):
     for j, (t, m) in enumerate(extra):
         items.append((float(t), 1, len(ev) + j, None, m))
     items.sort(key=lambda x: x[:3])
-    host, host_t = (None, None), -math.inf
+    host, host_t = None, -math.inf
     for t, _, _, e, m in items:
         if e is not None:
             m = the_plan.bsm(e)
             if wire:
                 m = decode_frame(encode_frame(m))
             if e["host"]:
-                host, host_t = (m.lat, m.lon), t
+                host, host_t = m, t
                 continue
             if modify is not None:
                 m = modify(int(e["vehicle"]), m)
                 if m is None:
                     continue
-        yield t, m, *(host if t - host_t <= 0.5 else (None, None))
+        hb = host if t - host_t <= 0.5 else None
+        if hosted:
+            yield t, m, hb
+        else:
+            yield t, m, *((hb.lat, hb.lon) if hb is not None else (None, None))
+
+
+def _run_hosted(the_plan, det=None, **kw):
+    """:func:`_run` with the host's heading, speed and yaw rate, as the OBU passes them;
+    also every report (:attr:`MisbehaviorDetector.reports`) as it was filed."""
+    det = MisbehaviorDetector() if det is None else det
+    found: list[Detection] = []
+    reports: list[Detection] = []
+    for t, m, hb in _stream(the_plan, hosted=True, **kw):
+        found += det.observe(m, t, *((hb.lat, hb.lon) if hb else (None, None)),
+                             host_heading=hb.heading if hb else None,
+                             host_speed=hb.speed if hb else None,
+                             host_yaw_rate=hb.yaw_rate if hb else None)
+        reports += det.reports
+    return det, found, reports
 
 
 def _run(the_plan, det=None, **kw):
-    det = det or MisbehaviorDetector()
+    det = MisbehaviorDetector() if det is None else det
     found: list[Detection] = []
     for t, m, hlat, hlon in _stream(the_plan, **kw):
         found += det.observe(m, t, hlat, hlon)
@@ -585,7 +605,7 @@ def _cert(tid: int) -> bytes:
 def _run_signed(the_plan, det=None, signers=None, **kw):
     """:func:`_run` with every message signed: by ``signers[id(bsm)]`` for those given,
     else by its id's own certificate (:func:`_cert`)."""
-    det = det or MisbehaviorDetector()
+    det = MisbehaviorDetector() if det is None else det
     signers = signers or {}
     found: list[Detection] = []
     for t, m, hlat, hlon in _stream(the_plan, **kw):
@@ -614,7 +634,7 @@ def test_a_second_signer_claiming_an_id_is_the_suspect_not_its_holder(table, cle
     assert det.quarantined(lead, 10.1, thief) and det.ids_of(lead, 10.1, thief) == {lead}
     assert not det.quarantined(lead, 10.1, _cert(lead))
     assert not det.quarantined(lead, 10.1)  # the id's holder, the leader
-    assert det.counters == {"id-conflict": 1, "quarantines": 1}
+    assert det.counters == {"id-conflict": 1, "quarantines": 1, "reported": 1}
     # unsigned, nothing binds the id: whoever claims it gets the leader quarantined
     det, found = _run(clean_plan, extra=[(10.05, bad)])
     assert "intersection" in _checks(found) and det.quarantined(lead, 30.0)
@@ -909,3 +929,125 @@ def test_random_field_values_never_raise(rows):
         assert all(d.check in CHECKS and d.score >= 1.0 and math.isfinite(d.score)
                    for d in out)
         det.quarantined(tid, t)
+
+
+# --- sudden appearance: in the host's path, or beside it -----------------------------------
+
+
+def test_honest_newcomers_beside_and_behind_the_host_are_not_quarantined():
+    """Issue 28: on the dense NGSIM I-80 scene (host 232, 45 RVs), cars enter the data
+    beside and behind the host, five of them inside its 50 m safety range (8-45 m away):
+    to a receiver, honest cars first heard nearby.  Each was quarantined at once for the
+    whole of its time in the data, and every BSW and LCW warning of the run was lost.  A
+    first message inside the safety range is strong only in the host's path ahead, where
+    a ghost can trigger an FCW; beside or behind it is a weak finding, reported to
+    nobody unless more evidence follows."""
+    from hil.datasets import load
+
+    (scene,) = load(f"scene:ngsim:{shared_path('ngsim-i80-pairs')}")
+    det, found, reports = _run_hosted(plan(scene, ChannelConfig(), 0))
+    assert found and _checks(found) == {"sudden-appearance"}
+    near = [d for d in found if d.evidence["distance_m"] < d.evidence["safety_range_m"]]
+    assert len(near) >= 5
+    for d in near:  # beside (more than a lane across) or behind the host, in the clear
+        assert d.evidence["along_m"] < 0.0 or abs(d.evidence["across_m"]) > 3.0, d
+    assert sum(d.evidence["behind"] is None for d in near) >= 3
+    assert not any(is_strong(d, det.config) for d in found)
+    assert det.counters["quarantines"] == 0 and reports == []
+    # the rule before: any clear first message inside the safety range was strong (as
+    # now without the host's heading)
+    old, _ = _run(plan(scene, ChannelConfig(), 0))
+    assert old.counters["quarantines"] >= 3
+
+
+def _ghost_on_arc(radius: float, ahead: float, t: float, tid: int = 0x6A7A0000):
+    """A host at the origin heading north at 20 m/s on a right turn of ``radius`` m (its
+    yaw rate as J2735 has it, deg/s clockwise), and a BSM of a vehicle ``ahead`` m along
+    that arc: ``(host, ghost)``."""
+    yaw = math.degrees(20.0 / radius)
+    host = BSM(msg_cnt=0, temp_id=0x11, sec_mark=round(t * 1000) % 60000, lat=47.0,
+               lon=8.0, speed=20.0, heading=0.0, yaw_rate=yaw, length=4.5, width=1.8)
+    a = ahead / radius  # the angle turned
+    east, north = radius * (1.0 - math.cos(a)), radius * math.sin(a)
+    ghost = _shift(BSM(msg_cnt=0, temp_id=tid, sec_mark=host.sec_mark, lat=47.0, lon=8.0,
+                       speed=20.0, heading=math.degrees(a), length=4.5, width=1.8),
+                   east, north)
+    return host, ghost
+
+
+def _warmed() -> MisbehaviorDetector:
+    """A detector that heard a parked car 1 km south of 47 N 8 E for 1 s at 10 Hz: past
+    its warm-up, a first message is an appearance."""
+    det = MisbehaviorDetector()
+    for k in range(11):
+        assert det.observe(BSM(msg_cnt=k, temp_id=0x22, sec_mark=100 * k, lat=46.991,
+                               lon=8.0, speed=0.0, heading=0.0), 0.1 * k, 47.0, 8.0) == []
+    return det
+
+
+def test_a_ghost_on_the_hosts_curving_path_is_in_its_path():
+    """The host's path ahead bends with its yaw rate: a ghost 40 m along a 200 m bend is
+    4 m right of the host's heading, more than a lane, yet in its path."""
+    host, ghost = _ghost_on_arc(200.0, 40.0, 1.1)
+    kw = {"host_heading": host.heading, "host_speed": host.speed}
+    det = _warmed()
+    (d,) = det.observe(ghost, 1.1, host.lat, host.lon, host_yaw_rate=host.yaw_rate, **kw)
+    assert d.check == "sudden-appearance"
+    assert d.evidence["along_m"] == pytest.approx(39.7, abs=0.3)
+    assert d.evidence["across_m"] == pytest.approx(0.0, abs=0.2)
+    assert is_strong(d, det.config) and det.quarantined(ghost.temp_id, 1.15)
+    assert det.reports == (d,)
+    # without the yaw rate the path is straight: 4 m across, beside the host, weak
+    det = _warmed()
+    (d,) = det.observe(ghost, 1.1, host.lat, host.lon, **kw)
+    assert d.evidence["across_m"] == pytest.approx(4.0, abs=0.1)
+    assert not is_strong(d, det.config) and det.reports == ()
+    assert not det.quarantined(ghost.temp_id, 1.15)
+    # and with no host heading at all, the place is unknown: taken as in the path
+    det = _warmed()
+    (d,) = det.observe(ghost, 1.1, host.lat, host.lon)
+    assert d.evidence["along_m"] is None and is_strong(d, det.config)
+
+
+def test_a_ghost_ahead_in_the_lane_is_still_quarantined_and_reported(table, clean_plan):
+    """With the host's heading, speed and yaw rate (as the OBU passes them) the ghost
+    20 m ahead in the host's lane is in its path: quarantined and reported at once."""
+    ghost = 0x6A7A0000
+    extra = []
+    for k in range(30):
+        t = 8.0 + 0.1 * k
+        lat, lon, hdg, v = _host_at(table, t)
+        m = BSM(msg_cnt=k % 128, temp_id=ghost, sec_mark=round(t * 1000) % 60000,
+                lat=lat, lon=lon, speed=v, heading=hdg, length=4.5, width=1.8)
+        extra.append((t, _shift(m, 20 * math.sin(math.radians(hdg)),
+                                20 * math.cos(math.radians(hdg)))))
+    det, found, reports = _run_hosted(clean_plan, extra=extra)
+    first = found[0]
+    assert first.check == "sudden-appearance" and first.t == pytest.approx(8.0)
+    assert first.evidence["along_m"] == pytest.approx(20.0, abs=3.5)
+    assert abs(first.evidence["across_m"]) < 0.5
+    assert is_strong(first, det.config) and det.quarantined(ghost, 8.05)
+    assert reports[0] is first and {d.suspect for d in reports} == {ghost}
+
+
+def test_weak_findings_are_reported_only_past_the_threshold(table, clean_plan):
+    """A misbehavior report goes out once the evidence passes the reporting threshold
+    (F2MD's AggregationApp, J3287): two weak findings of a fabricated id file nothing; the
+    third quarantines it, and its report carries all three."""
+    ghost = 0x6A7A0100
+    extra = []
+    for k in range(100):  # as test_weak_findings_accumulate_to_quarantine_a_fabricated_id
+        t = 8.0 + 0.1 * k
+        lat, lon, hdg, v = _host_at(table, t)
+        m = BSM(msg_cnt=k % 128, temp_id=ghost, sec_mark=round(t * 1000) % 60000,
+                lat=lat, lon=lon, speed=v, heading=hdg, length=4.5, width=1.8)
+        m = _shift(m, 80 * math.sin(math.radians(hdg)), 80 * math.cos(math.radians(hdg)))
+        if k in (40, 80):
+            m = dataclasses.replace(m, heading=(hdg + 90.0) % 360.0)
+        extra.append((t, m))
+    det, found, reports = _run_hosted(clean_plan, extra=extra[:80])
+    assert len(found) == 2 and reports == [] and det.counters["reported"] == 0
+    det, found, reports = _run_hosted(clean_plan, extra=extra)
+    assert [(d.check, round(d.t, 1)) for d in reports] == [
+        ("sudden-appearance", 8.0), ("heading", 12.0), ("heading", 16.0)]
+    assert reports == found and det.counters["reported"] == 3

@@ -244,6 +244,7 @@ def test_a_replayed_leader_is_not_quarantined_and_its_fcw_still_fires(pki, tmp_p
     # nobody quarantined, nothing reported, no check fired
     rx = list(read_rx(attacked))
     assert not [r for r in rx if r["status"] == "quarantined"]
+    assert (attacked / "obu.mbd.jsonl").read_text() == ""
     assert (attacked / "obu.mbr.jsonl").read_text() == ""
     counters = json.loads((attacked / "obu.counters.json").read_text())
     assert not {k for k in counters if k.startswith("mbd_") and k != "mbd_no_host_yet"}

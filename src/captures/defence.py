@@ -17,26 +17,30 @@ raised on the leader was lost.  Here the clean twin says what the OBU would have
   no vehicle of the run has (its schedule's attack records: ghost, sudden, sybil), every
   warning on them false; ``misbehaving``, the vehicles whose own frames the attack
   changed (``offset``, ``speed``, and the security kinds ``unsigned``, ``bad-signature``,
-  ``foreign-cert``); ``replayed``, the vehicles whose frames a replay sends again.  For
-  the last two, ``added`` counts the warning ticks the clean run did not have at that
-  tick.
+  ``foreign-cert``); ``replayed``, the vehicles whose frames a replay sends again
+  or whose id an impersonator sends under.  For the last two, ``added`` counts the
+  warning ticks the clean run did not have at that tick.
 * **Honest vehicles suspected or quarantined**: every vehicle of the run but the host and
   the misbehaving ones is honest, the replay's victim and a Sybil's companion included
   (the testbench's Sybil ids are signed by an insider's certificate, nothing ties them to
-  that vehicle).  Suspected: named as the suspect of a report (``obu.mbr.jsonl``), with
-  the checks.  Quarantined: its frames dropped because their sender was in quarantine
-  (``obu.rx`` status ``quarantined``, ``why`` ``quarantine``; a copy, a stale frame or an
-  id conflict is another ``why``, counted apart in ``other_drops``; captures before
-  2026-11-28 have no ``why``, and every drop is then taken for a quarantine), with the
-  frames dropped, the RVE's messages it never took because of them, and how long: the
-  first to the last dropped frame, in data time (the schedule's time of the message the
-  frame carries).  The clean twin's figures are the baseline (``clean_honest``).
+  that vehicle). Suspected: named as the suspect of a finding (``obu.mbd.jsonl``), with
+  the checks and how many of them were reported (``obu.mbr.jsonl``: past the reporting
+  threshold; captures before 2026-11-28 reported every finding). Quarantined: its frames
+  dropped because their sender was in quarantine (``obu.rx`` status ``quarantined``,
+  ``why`` ``quarantine``; a copy, a stale frame or an id conflict is another ``why``,
+  counted apart in ``other_drops``; captures before 2026-11-28 have no ``why``, and every
+  drop is then taken for a quarantine), with the frames dropped, the RVE's messages it
+  never took because of them, and how long: the first to the last dropped frame, in data
+  time (the schedule's time of the message the frame carries). The clean twin's figures
+  are the baseline (``clean_honest``).
 * **Detection** with victims as false positives: flagged are the ids named as suspects
-  or quarantined; a flagged id is a true positive when the attack controls it (a
-  fabricated id, a misbehaving vehicle), else a false positive.  Precision = TP /
-  flagged (None when none is flagged), recall = TP / the attack's ids whose frames
-  reached the checks (None when none did: a replay has no id of its own).  None without
-  ``--mbd``.
+  of a report or quarantined; a flagged id is a true positive when the attack controls it (a
+  fabricated id, a misbehaving vehicle), else a false positive.  An id conflict's report
+  names the certificate that signed the frame, not the id's holder: an impersonator
+  (``impersonate``), which has no id of its own, is ``impersonator`` when the frame was
+  its.  Precision = TP / flagged (None when none is flagged), recall = TP / the attack's
+  ids whose frames reached the checks (None when none did: a replay has no id of its
+  own).  None without ``--mbd``.
 """
 
 from __future__ import annotations
@@ -140,9 +144,26 @@ def _roles(cap: Capture, names: dict[str, str]) -> tuple[dict, dict, dict, dict]
             fabricated.setdefault(r["id"], kind)
         elif kind in MISBEHAVING:
             misbehaving.setdefault(r["id"], kind)
-        elif kind == "replay":
+        elif kind in ("replay", "impersonate"):
             replayed.setdefault(r["id"], kind)
     return fabricated, misbehaving, replayed, when
+
+
+#: How the detection figures name an impersonator (``--attack impersonate``): it sends
+#: under another vehicle's id, and a report can name only its certificate.
+IMPOSTOR = "impersonator"
+
+
+def _impostor(cap: Capture) -> tuple[set[str], bool]:
+    """The signers (``signer:HEX``) of the id conflicts reported on the impersonator's
+    frames, and whether any of its frames reached the checks."""
+    keys = {scheduled_key(r) for r in cap.iter_schedule() if r.get("attack") == "impersonate"}
+    signers = {f"signer:{m['evidence'].get('signer')}" for m in cap.mbr or []
+               if m["check"] == "id-conflict"
+               and (m["suspect"], m["msgCnt"], m["sec_mark"]) in keys}
+    reached = any(r.get("status") in ("ok", "quarantined") and received_key(r) in keys
+                  for r in cap.iter_rx() if r.get("channel") == "rv")
+    return signers, reached
 
 
 def _drops(cap: Capture, when: dict, sent: set) -> tuple[dict[str, dict], set[str]]:
@@ -182,18 +203,27 @@ def _drops(cap: Capture, when: dict, sent: set) -> tuple[dict[str, dict], set[st
 def _honest(cap: Capture, honest: set[str], label, when: dict, sent: set
             ) -> tuple[dict, set[str], set[str]]:
     """What misbehavior detection did to the honest vehicles: ``suspected`` (label ->
-    {reports, checks}), ``quarantined`` (label -> {frames, messages, first_t, last_t,
+    {findings, reports, checks}), ``quarantined`` (label -> {frames, messages, first_t, last_t,
     duration_s}), ``other_drops`` (label -> {why: frames}: copies, stale frames, id
-    conflicts under its id); the ids flagged (suspected or quarantined, honest or not)
+    conflicts under its id); the ids flagged (reported or quarantined, honest or not)
     and those whose frames reached the checks."""
     suspected: dict[str, dict] = {}
     flagged: set[str] = set()
+    for m in cap.findings or []:
+        if m["suspect"] in honest:
+            s = suspected.setdefault(label(m["suspect"]),
+                                     {"findings": 0, "reports": 0, "checks": {}})
+            s["findings"] += 1
+            s["checks"][m["check"]] = s["checks"].get(m["check"], 0) + 1
     for m in cap.mbr or []:
+        if m["check"] == "id-conflict":  # names the signer, not the id's holder
+            flagged.add(f"signer:{m['evidence'].get('signer')}")
+            continue
         flagged.add(m["suspect"])
         if m["suspect"] in honest:
-            s = suspected.setdefault(label(m["suspect"]), {"reports": 0, "checks": {}})
+            s = suspected.setdefault(label(m["suspect"]),
+                                     {"findings": 0, "reports": 0, "checks": {}})
             s["reports"] += 1
-            s["checks"][m["check"]] = s["checks"].get(m["check"], 0) + 1
     drops, checked = _drops(cap, when, sent)
     quarantined: dict[str, dict] = {}
     other: dict[str, dict] = {}
@@ -273,6 +303,12 @@ def compare(clean_dir: Path, attacked_dir: Path) -> dict:
     honest = set(names) - {host} - attackers
     sent = _sent(attacked)
     harm, flagged, checked = _honest(attacked, honest, label, when, sent)
+    if "impersonate" in replayed.values():  # it has no id of its own: its signer
+        signers, reached = _impostor(attacked)
+        attackers |= {IMPOSTOR}
+        flagged = {IMPOSTOR if i in signers else i for i in flagged}
+        if reached:
+            checked.add(IMPOSTOR)
     baseline = _honest(clean, honest, label, _roles(clean, names)[3], _sent(clean))[0]
     detection = None
     if attacked.mbr is not None:
@@ -332,7 +368,7 @@ def table(r: dict) -> str:
                          + _apps(g["ticks"]) + "; not in the clean run " + _apps(g["added"]))
     h = r["honest"]
     lines.append("honest vehicles suspected: " + (", ".join(
-        f"{v} ({s['reports']} reports: {_apps(s['checks'])})"
+        f"{v} ({s['findings']} findings, {s['reports']} reported: {_apps(s['checks'])})"
         for v, s in sorted(h["suspected"].items())) or "none"))
     lines.append("honest vehicles quarantined: " + (", ".join(
         f"{v} ({q['frames']} frames dropped, {q['messages']} messages lost, data time "

@@ -425,7 +425,8 @@ def _detection(out: dict, cap: Capture, names: dict[str, str], mbr: list[dict]) 
     # the first report on each suspect, as the secMark of the message that raised it
     first_report: dict[str, int] = {}
     for m in mbr:
-        first_report.setdefault(m["suspect"], m["sec_mark"])
+        if m["check"] != "id-conflict":  # that one names the signer, not the id's holder
+            first_report.setdefault(m["suspect"], m["sec_mark"])
     false_suspects = sorted(set(first_report) - set(attackers))
     for kind, a in out.items():
         ids = [i for i, k in attackers.items()

@@ -14,6 +14,10 @@ extension, F2MD's attack types, the USDOT J3287 faulty-BSM generator):
                    ``start``, at the host's speed (no braking): sudden appearance.
 ``sybil``          ``count`` extra ids sent by one vehicle (``vehicle``), placed along its
                    path every ``spacing`` m behind it, with its speed and heading.
+``impersonate``    an insider (``signer``: its own valid pseudonym certificate) sending
+                   under ``vehicle``'s TemporaryID, placed ``ahead`` m ahead of the host on
+                   its path at the host's speed (0: on the host): nothing binds a BSM's id
+                   to the certificate that signs it but the receiver.
 ``replay``         the frames of ``vehicle`` from ``delay`` s ago sent again, octet for
                    octet (with their old generation time when signed).
 ``offset``         ``vehicle``'s positions shifted by (``dx``, ``dy``) m east/north.
@@ -40,6 +44,7 @@ from typing import Any
 import numpy as np
 
 from catc.bsm import BSM, msg_cnt, sec_mark
+from catc.replay import temp_id
 
 __all__ = [
     "FABRICATED",
@@ -52,7 +57,7 @@ __all__ = [
     "parse",
 ]
 
-FABRICATED = ("ghost", "sudden", "sybil")
+FABRICATED = ("ghost", "sudden", "sybil", "impersonate")
 MODIFYING = ("offset", "speed")
 SECURITY = ("unsigned", "bad-signature", "foreign-cert")
 KINDS = (*FABRICATED, "replay", *MODIFYING, *SECURITY)
@@ -62,6 +67,7 @@ PARAMS: dict[str, dict[str, Any]] = {
     "ghost": {"ahead": 20.0, "decel": 6.0, "signer": "insider"},
     "sudden": {"distance": 15.0, "signer": "insider"},
     "sybil": {"vehicle": None, "count": 3, "spacing": 8.0},
+    "impersonate": {"vehicle": None, "ahead": 0.0, "signer": "insider"},
     "replay": {"vehicle": None, "delay": 3.0},
     "offset": {"vehicle": None, "dx": 0.0, "dy": 30.0},
     "speed": {"vehicle": None, "factor": 2.0, "accel": 0.0},
@@ -184,6 +190,9 @@ class Attacks:
                 self.targets[k] = self._vehicle(a)
         self._paths: dict[int, _Path] = {}
         self._msg_cnt: dict[int, int] = {}
+        #: attack index -> the TemporaryID an impersonator sends under (its vehicle's)
+        self.victim_ids = {k: temp_id(the_plan.vehicles[self.targets[k]])
+                           for k, a in enumerate(attacks) if a.kind == "impersonate"}
 
     def _vehicle(self, a: Attack) -> int:
         names = list(self.plan.vehicles)
@@ -220,8 +229,8 @@ class Attacks:
     def _fabricated(self, k: int, a: Attack, t: float) -> list[BSM]:
         tau = t - self.t0 - a["start"]
         host_v = float(np.interp(self.t0 + a["start"], self.host.t, self.host.speed))
-        if a.kind in ("ghost", "sudden"):
-            ahead = a["ahead"] if a.kind == "ghost" else a["distance"]
+        if a.kind in ("ghost", "sudden", "impersonate"):
+            ahead = a["distance"] if a.kind == "sudden" else a["ahead"]
             decel = a["decel"] if a.kind == "ghost" else 0.0
             stop = host_v / decel if decel > 0 else math.inf
             tt = min(tau, stop)
@@ -229,7 +238,8 @@ class Attacks:
                 - 0.5 * decel * tt * tt
             v = max(0.0, host_v - decel * tau)
             lat, lon, hdg = self.host_path.at(s)
-            tid = self.ID_BASE | (k << 8)
+            tid = self.ID_BASE | (k << 8) if a.kind != "impersonate" \
+                else self.victim_ids[k]
             return [BSM(msg_cnt=self._next_cnt(tid), temp_id=tid,
                         sec_mark=sec_mark(t), lat=lat, lon=lon, speed=v,
                         heading=hdg, accel_long=-decel if v > 0 else 0.0, yaw_rate=0.0,

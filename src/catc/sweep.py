@@ -136,12 +136,45 @@ def fcw_scene(table: MobilityTable) -> MobilityTable:
     from dataclasses import replace
 
     host = _host(table)
-    names = list(table.tracks)
-    k = names.index(host)
-    if k == 0:
+    lead = vehicle_ahead(table, host)
+    if lead is None:
         raise ValueError(f"trip {table.name!r}: the host {host!r} has no vehicle ahead")
-    lead = names[k - 1]
     return replace(table, tracks={lead: table.tracks[lead], host: table.tracks[host]})
+
+
+def vehicle_ahead(table: MobilityTable, host: str, reach_m: float = 150.0,
+                  half_lane_m: float = 2.5) -> str | None:
+    """The vehicle ahead of ``host``: at each of the host's samples, the nearest vehicle
+    in its lane ahead (within ``reach_m`` along the host's heading, ``half_lane_m``
+    across) gets a vote, and the most votes win.  None when no vehicle is ever there
+    and the host is first in the table's order; else the one before it in that order
+    (leader first, as the two-vehicle trips of OpenACC and NGSIM are)."""
+    h = table.tracks[host]
+    rad = np.radians(h.heading)
+    sin_h, cos_h = np.sin(rad), np.cos(rad)
+    best = np.full(len(h.t), np.inf)
+    who = np.full(len(h.t), -1)
+    names = list(table.tracks)
+    for j, vid in enumerate(names):
+        if vid == host:
+            continue
+        tr = table.tracks[vid]
+        inside = (h.t >= tr.t[0]) & (h.t <= tr.t[-1])
+        if not inside.any():
+            continue
+        dx = np.interp(h.t, tr.t, tr.x) - h.x
+        dy = np.interp(h.t, tr.t, tr.y) - h.y
+        along = dx * sin_h + dy * cos_h
+        across = dx * cos_h - dy * sin_h
+        near = inside & (along > 0.0) & (along < reach_m) & (np.abs(across) < half_lane_m) \
+            & (along < best)
+        best[near] = along[near]
+        who[near] = j
+    votes = np.bincount(who[who >= 0], minlength=len(names))
+    if votes.any():
+        return names[int(np.argmax(votes))]
+    k = names.index(host)
+    return names[k - 1] if k > 0 else None
 
 
 def received_mask(track_t: np.ndarray, cell: Cell, seed: int, key: str) -> np.ndarray:

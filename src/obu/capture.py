@@ -2,9 +2,10 @@
 :mod:`hil.capture.schema` names and builds them.
 
 The per-tick files (``obu.rx.jsonl.gz``, ``obu.ticks.jsonl``, ``obu.tracks.bin``,
-``obu.events.jsonl``, ``obu.mbr.jsonl``) are append-only and flushed at every tick, so
-``kill -9`` loses at most the last tick; the config and the counters are rewritten whole
-(through a temporary file and a rename, so a reader never sees half of one).
+``obu.events.jsonl``, ``obu.mbd.jsonl``, ``obu.mbr.jsonl``) are append-only and flushed at
+every tick, so ``kill -9`` loses at most the last tick; the config and the counters are
+rewritten whole (through a temporary file and a rename, so a reader never sees half of
+one).
 
 The cap (``obu run --capture-max-mb N``).  The per-tick files are then written in
 segments of N/10 MB, a time slice each: after a tick that took the current segment past
@@ -43,7 +44,7 @@ Received = tuple[BSM, float | None, bytes, str | None]
 class ObuCapture:
     """The files of one OBU run in ``directory`` (created): ``obu.config.json`` at once
     (and again with the ENU origin at the first tick), the JSON-lines records as they
-    come, ``obu.mbr.jsonl`` only with ``--mbd``."""
+    come, ``obu.mbd.jsonl`` and ``obu.mbr.jsonl`` only with ``--mbd``."""
 
     def __init__(self, directory: Path, args: argparse.Namespace) -> None:
         self.dir = directory
@@ -70,6 +71,7 @@ class ObuCapture:
         self.ticks = JsonLines(path(schema.OBU_TICKS))
         self.tracks = TrackWriter(path(schema.OBU_TRACKS))
         self.events = JsonLines(path(schema.OBU_EVENTS))
+        self.mbd_log = JsonLines(path(schema.OBU_MBD)) if self.mbd else None
         self.mbr = JsonLines(path(schema.OBU_MBR)) if self.mbd else None
 
     def _segment_bytes(self) -> int:
@@ -159,9 +161,15 @@ class ObuCapture:
         self.frame(rx_unix, "rv", data, status, sender=(m.temp_id, m.msg_cnt, m.sec_mark),
                    verdict=verdict, **details)
 
+    def finding(self, t_unix: float, t: float, reporter: int | None, detection: Any,
+                bsm: BSM, data: bytes) -> None:
+        """A misbehavior finding (:func:`hil.capture.schema.finding`), with ``--mbd``."""
+        if self.mbd_log is not None:
+            self.mbd_log.write(schema.finding(t_unix, t, reporter, detection, bsm, data))
+
     def report(self, t_unix: float, t: float, reporter: int | None, detection: Any,
                bsm: BSM, data: bytes) -> None:
-        """A misbehavior detection (:func:`hil.capture.schema.report`), with ``--mbd``."""
+        """A misbehavior report (:func:`hil.capture.schema.report`), with ``--mbd``."""
         if self.mbr is not None:
             self.mbr.write(schema.report(t_unix, t, reporter, detection, bsm, data))
 
@@ -181,8 +189,8 @@ class ObuCapture:
         self._rotate()
 
     def _files(self) -> list[Any]:
-        return [f for f in (self.rx, self.ticks, self.tracks, self.events, self.mbr)
-                if f is not None]
+        return [f for f in (self.rx, self.ticks, self.tracks, self.events, self.mbd_log,
+                            self.mbr) if f is not None]
 
     def flush(self) -> None:
         for f in self._files():

@@ -198,8 +198,10 @@ class Frames:
 
     def misbehaves(self, bsm: BSM, rx_unix: float, data: bytes,
                    verdict: str | None = None) -> bool:
-        """Run the misbehavior checks on one RV BSM; write a report per detection
-        (:meth:`obu.capture.ObuCapture.report`); True (drop it) when the detector drops
+        """Run the misbehavior checks on one RV BSM; write each finding
+        (:meth:`obu.capture.ObuCapture.finding`) and each report, once its sender's
+        evidence passed the reporting threshold (:meth:`~obu.capture.ObuCapture.report`,
+        :attr:`catc.mbd.MisbehaviorDetector.reports`); True (drop it) when the detector drops
         it (a copy, a stale message, an id another signer holds) or its signer is in
         quarantine (then the tracks of every id the signer holds go too).  ``verdict`` is
         its 1609.2 verdict: only a verified signature (``ok``) names a signer.
@@ -218,11 +220,19 @@ class Frames:
         signer = self.last_signer if verdict == "ok" else None
         mbd = self.mbd
         found = mbd.observe(bsm, t, hb.lat if hb else None, hb.lon if hb else None,
-                            host_heading=hb.heading if hb else None, signer=signer)
+                            host_heading=hb.heading if hb else None,
+                            host_speed=hb.speed if hb else None,
+                            host_yaw_rate=hb.yaw_rate if hb else None, signer=signer)
+        reporter = hb.temp_id if hb else None
         for d in found:
             self.counters[f"mbd_{d.check}"] += 1
             if self.cap is not None:
-                self.cap.report(rx_unix, t, hb.temp_id if hb else None, d, bsm, data)
+                self.cap.finding(rx_unix, t, reporter, d, bsm, data)
+        if mbd.reports:
+            self.counters["mbd_reports"] += len(mbd.reports)
+            if self.cap is not None:
+                for d in mbd.reports:
+                    self.cap.report(rx_unix, t, reporter, d, bsm, data)
         if mbd.dropped in ("copy", "stale"):
             self.counters[f"mbd_{mbd.dropped}"] += 1
         elif mbd.dropped is None:

@@ -7,7 +7,7 @@ from __future__ import annotations
 import argparse
 
 from catc.predict import NAMES
-from hil.capture.schema import OBU_MBR
+from hil.capture.schema import OBU_MBD, OBU_MBR
 from hil.config import add_can_arguments, address, non_negative, positive, web_address
 
 __all__ = ["DEFAULTS", "add_arguments"]
@@ -83,7 +83,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "127.0.0.1 unless a host is named; off by default")
     p.add_argument("--mbd", action="store_true", default=None,
                    help="misbehavior detection (catc.mbd: F2MD's plausibility checks) on "
-                        "every RV frame that passes verification: detections go to "
-                        f"{OBU_MBR} and a quarantined sender is not tracked")
+                        "every RV frame that passes verification: findings go to "
+                        f"{OBU_MBD}, reports (past the reporting threshold) to {OBU_MBR}, "
+                        "and a quarantined sender is not tracked")
     p.add_argument("--no-progress", dest="progress", action="store_false", default=None,
                    help="no status line on stderr")

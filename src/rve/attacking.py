@@ -38,7 +38,7 @@ class Attacking:
                 raise ValueError(f"--attack {bad[0]} needs --sign PKI_DIR")
         else:
             for a in specs:
-                if a.kind in ("ghost", "sudden"):
+                if a.kind in ("ghost", "sudden", "impersonate"):
                     signer.attacker(a["signer"])  # fail now, in one line, if it is missing
                 if a.kind == "foreign-cert":
                     signer.attacker("outsider")

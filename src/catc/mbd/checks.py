@@ -31,7 +31,7 @@ from catc.mbd.geometry import RAD, blocks, dlon, iou, max_min_dist
 from catc.mbd.state import Senders
 
 __all__ = ["BASELINE_CHECKS", "CHECKS", "ID_CONFLICT", "TABLE", "TRACK_CHECKS", "Check",
-           "Detection", "Observation", "Pair", "pairs", "ratio"]
+           "Detection", "Observation", "Pair", "in_path", "pairs", "ratio"]
 
 #: The check names a :class:`Detection` carries (the checks of :data:`TABLE`) ...
 CHECKS = ("range", "position-consistency", "speed-consistency", "position-speed",
@@ -93,7 +93,8 @@ class Observation:
     * Its sender: ``st`` (:class:`~catc.mbd.state.Sender`), its last accepted message
       ``acc`` (None: this is its first) and all the ``senders``.
     * The host: ``host_d`` (m; None: no host position) and, when known, its offset from
-      the sender ``hx``, ``hy`` (m east, north) and ``host_heading`` (deg or None).
+      the sender ``hx``, ``hy`` (m east, north), ``host_heading`` (deg or None) and
+      ``host_k``, the curvature of its path (1/m, + turning right; 0: straight or unknown).
     * Against ``acc``: ``ahead``, how far the sender's clock runs ahead of its lowest
       latency (None without secMarks), the interval ``dt`` on that clock (None: none
       usable), the message's time ``ts`` on it, and ``follows``: it comes after ``acc``,
@@ -108,8 +109,8 @@ class Observation:
       ``diag`` (m)."""
 
     __slots__ = ("acc", "ahead", "anchor_i", "bsm", "conflict", "cos_h", "diag", "dt", "dtr",
-                 "follows", "h", "heading", "host_d", "host_heading", "hx", "hy", "key", "kx",
-                 "ky", "lat", "length", "lon", "rdist", "ref", "rx", "ry", "senders", "sin_h",
+                 "follows", "h", "heading", "host_d", "host_heading", "host_k", "hx", "hy", "key",
+                 "kx", "ky", "lat", "length", "lon", "rdist", "ref", "rx", "ry", "senders", "sin_h",
                  "sm", "speed", "st", "sybil", "t", "tid", "ts", "twin", "width")
 
     def __init__(self, senders: Senders) -> None:
@@ -183,10 +184,34 @@ def sudden_appearance(o: Observation, c: MbdConfig) -> Finding | None:
     senders = o.senders
     if not o.t - senders.t0 >= senders.unheard_s(c) or _continues(o, c):
         return None
+    along, across = _in_host_frame(o)
     return ratio(c.sa_range_m, d), {"distance_m": d, "limit_m": c.sa_range_m,
                                     "safety_range_m": c.sa_safety_range_m,
+                                    "along_m": along, "across_m": across,
                                     "behind": _behind(o, c) if d < c.sa_safety_range_m
                                     else None}
+
+
+def _in_host_frame(o: Observation) -> tuple[float | None, float | None]:
+    """The sender from the host along the host's path (m, + ahead) and across it (m, +
+    right): in the host's heading frame, less the offset of its arc (``host_k``, 1/m)
+    at that distance; (None, None) without the host's heading."""
+    hh = o.host_heading
+    if hh is None:
+        return None, None
+    h = hh * RAD
+    x, y = -o.hx, -o.hy  # the sender from the host, east and north
+    s, c_ = math.sin(h), math.cos(h)
+    along = x * s + y * c_
+    return along, x * c_ - y * s - 0.5 * o.host_k * along * along
+
+
+def in_path(d: Detection, c: MbdConfig) -> bool:
+    """Whether a sudden appearance ``d`` is in the host's path ahead (where a ghost
+    can trigger a forward collision warning), or its place is unknown (no host heading:
+    taken as in the path)."""
+    along, across = d.evidence.get("along_m"), d.evidence.get("across_m")
+    return along is None or (along > 0.0 and abs(across) <= c.sa_path_halfwidth_m)
 
 
 def _behind(o: Observation, c: MbdConfig) -> int | None:

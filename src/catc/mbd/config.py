@@ -82,6 +82,13 @@ class MbdConfig:
     #: about 2 s of travel at highway speed, where a ghost can trigger a forward collision
     #: warning (catc.apps.fcw).  Ours, not F2MD's.
     sa_safety_range_m: float = 50.0
+    #: ... and in the host's path ahead: at most this far (m) across it (half a 3.6 m lane,
+    #: the zone classifier's On Centre, plus 0.9 m of position error; the centre of a car
+    #: in the next lane is some 3.6 m across, 4.2 m for the honest newcomers of the NGSIM
+    #: scene, docs/log/2026-11-28-mbd-in-path.md).  Beside or behind the host a first
+    #: message is where honest cars are first heard on real roads (merges, radio shadows,
+    #: the edge of a dataset's view); there it is weak evidence.  Ours.
+    sa_path_halfwidth_m: float = 2.7
     #: No sudden appearance while a vehicle in range could still be unheard: F2MD's
     #: P.h MAX_SA_TIME = 2.1 s (two of its 1 Hz beacons) is a blind warm-up, in which a
     #: ghost that starts at once is never one (issue 28).  Ours ends when the loss measured

@@ -24,7 +24,7 @@ from catc.mbd.checks import (
 from catc.mbd.config import MbdConfig
 from catc.mbd.geometry import dlon, scale
 from catc.mbd.identity import Identities
-from catc.mbd.quarantine import Quarantine, is_strong
+from catc.mbd.quarantine import Quarantine
 from catc.mbd.state import Msg, Sender, Senders, wrapped_dt
 
 __all__ = ["MisbehaviorDetector"]
@@ -58,6 +58,16 @@ def _sec_mark(x: Any) -> int | None:
     return v if 0 <= v < 61_000 else None
 
 
+def _curvature(speed: Any, yaw_rate: Any) -> float:
+    """The curvature (1/m, + turning right) of a path at ``speed`` (m/s) and ``yaw_rate``
+    (deg/s, + clockwise): 0 when either is unknown or the vehicle all but stands still,
+    and at most that of a 10 m turning circle."""
+    v, w = _num(speed), _num(yaw_rate)
+    if v is None or w is None or v < 1.0:
+        return 0.0
+    return max(-0.1, min(0.1, math.radians(w) / v))
+
+
 def _hex(key: Hashable) -> str:
     return key.hex() if isinstance(key, bytes) else f"{key:08X}"
 
@@ -71,6 +81,13 @@ class MisbehaviorDetector:
     #: than its sender's last beyond the reorder window); or, with the finding, ``id-
     #: conflict`` (another signer holds its id).
     dropped: str | None = None
+    #: What :meth:`observe` reported for its last message: nothing while its sender's
+    #: evidence is below the reporting threshold (the quarantine rule); once the sender
+    #: is in quarantine, its findings in the window not reported before (on entry: the
+    #: weak findings that led there) and this message's.  A misbehavior report (SAE J3287,
+    #: ETSI TS 103 759) goes to the authority only past such a threshold (F2MD's
+    #: AggregationApp), so an honest car's one odd message files none.
+    reports: tuple[Detection, ...] = ()
 
     def __init__(self, config: MbdConfig = _DEFAULT, max_senders: int = 4096) -> None:
         if not isinstance(max_senders, int) or max_senders < 1:
@@ -78,7 +95,8 @@ class MisbehaviorDetector:
         self.config = config
         self.max_senders = max_senders
         #: Detections by check name, ``quarantines`` (signers, or unsigned ids, put in
-        #: quarantine), and the messages dropped as ``copy`` or ``stale``.
+        #: quarantine), ``reported`` (findings reported, :attr:`reports`), and the
+        #: messages dropped as ``copy`` or ``stale``.
         self.counters: Counter = Counter()
         self._senders = Senders(config, max_senders)
         self._quarantine = Quarantine(config, max_senders)
@@ -119,14 +137,18 @@ class MisbehaviorDetector:
         return temp_id if holder is None else holder
 
     def observe(self, bsm, t: float, host_lat: float | None, host_lon: float | None, *,
-                host_heading: float | None = None,
+                host_heading: float | None = None, host_speed: float | None = None,
+                host_yaw_rate: float | None = None,
                 signer: bytes | None = None) -> list[Detection]:
         """The checks ``bsm`` (a :class:`catc.bsm.BSM`) fails, received at ``t`` (s, the
         caller's clock) with the host at ``host_lat``/``host_lon`` (None: unknown, and the
         host-relative checks are skipped; pass None too when the host's own position is
         stale).  Empty for a plausible message.  A check whose fields are unavailable is
         skipped.  ``host_heading`` (deg) orients the host's footprint; without it the host
-        is taken as aligned with the sender.
+        is taken as aligned with the sender.  ``host_speed`` (m/s) and ``host_yaw_rate``
+        (deg/s, positive clockwise as in J2735) bend the host's path ahead, along which a
+        sudden appearance is placed (:func:`~catc.mbd.checks.in_path`); without them the
+        path is straight.
 
         ``signer`` is the HashedId8 of the certificate whose signature on the message
         verified (None: unsigned or unverified).  The evidence attaches to it, and it
@@ -150,9 +172,11 @@ class MisbehaviorDetector:
         on :data:`~catc.mbd.checks.BASELINE_CHECKS`), and the quarantine rule applies
         (:mod:`catc.mbd.quarantine`)."""
         self.dropped = None
+        self.reports = ()
         o = self._read(bsm, t, host_lat, host_lon, host_heading, signer)
         if o is None:
             return []
+        o.host_k = _curvature(host_speed, host_yaw_rate)
         c, tid, t, key = self.config, o.tid, o.t, o.key
         if o.conflict is not None:
             return self._conflict(o, signer)
@@ -195,8 +219,11 @@ class MisbehaviorDetector:
         if found:
             for d in found:
                 self.counters[d.check] += 1
-            if self._quarantine.punish(key, t, any(is_strong(d, c) for d in found)):
+            entered, self.reports = self._quarantine.punish(key, t, found)
+            if entered:
                 self.counters["quarantines"] += 1
+            if self.reports:
+                self.counters["reported"] += len(self.reports)
         else:  # a clean message renews only a strong finding's quarantine
             self._quarantine.passed(key, t)
         return found
@@ -214,8 +241,10 @@ class MisbehaviorDetector:
             None, signer)
         self.dropped = ID_CONFLICT
         self.counters[ID_CONFLICT] += 1
-        if self._quarantine.punish(o.key, o.t, True):
+        entered, self.reports = self._quarantine.punish(o.key, o.t, [d])
+        if entered:
             self.counters["quarantines"] += 1
+        self.counters["reported"] += len(self.reports)
         return [d]
 
     def _read(self, bsm, t: float, host_lat: float | None, host_lon: float | None,

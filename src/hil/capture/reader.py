@@ -41,6 +41,7 @@ from hil.capture.schema import (
     OBU_CONFIG,
     OBU_END,
     OBU_EVENTS,
+    OBU_MBD,
     OBU_MBR,
     OBU_RX,
     OBU_TICKS,
@@ -305,6 +306,9 @@ class Capture:
     def iter_mbr(self) -> Iterator[dict[str, Any]]:
         return self._stream(OBU_MBR, required=False)
 
+    def iter_findings(self) -> Iterator[dict[str, Any]]:
+        return self._stream(OBU_MBD, required=False)
+
     def has(self, name: str) -> bool:
         """Whether the OBU wrote ``name`` (``obu.mbr.jsonl`` only with ``--mbd``)."""
         return bool(segment_files(self.directory, name))
@@ -366,8 +370,16 @@ class Capture:
 
     @cached_property
     def mbr(self) -> list[dict[str, Any]] | None:
-        """None when the OBU ran without --mbd."""
+        """The misbehavior reports; None when the OBU ran without --mbd."""
         return list(self.iter_mbr()) if self.has(OBU_MBR) else None
+
+    @cached_property
+    def findings(self) -> list[dict[str, Any]] | None:
+        """Every misbehavior finding, reported or not; None when the OBU ran without
+        --mbd (before 2026-11-28 ``obu.mbr.jsonl`` held them all: then those)."""
+        if self.has(OBU_MBD):
+            return list(self.iter_findings())
+        return self.mbr
 
 
 def read_capture(directory: Path, rx: bool = True) -> Capture:

@@ -33,7 +33,10 @@ file                     writer  one record per ...
 ``obu.tracks.bin``       OBU     tracked RV at every tick (:func:`track_columns`, read back as
                                  :func:`track_rows` made them)
 ``obu.events.jsonl``     OBU     warning start or end (:func:`event`)
-``obu.mbr.jsonl``        OBU     misbehavior detection, with ``obu run --mbd`` (:func:`report`)
+``obu.mbd.jsonl``        OBU     misbehavior finding (every failed check), with ``obu run --mbd``
+                                 (:func:`finding`)
+``obu.mbr.jsonl``        OBU     misbehavior report: a finding past the reporting threshold, with
+                                 ``obu run --mbd`` (:func:`report`)
 =======================  ======  ==============================================================
 
 Segments.  With ``obu run --capture-max-mb N`` the OBU's per-tick files (:data:`SEGMENTED`)
@@ -64,6 +67,7 @@ __all__ = [
     "OBU_COUNTERS",
     "OBU_END",
     "OBU_EVENTS",
+    "OBU_MBD",
     "OBU_MBR",
     "OBU_RX",
     "OBU_TICKS",
@@ -111,9 +115,10 @@ OBU_RX = "obu.rx.jsonl.gz"
 OBU_TICKS = "obu.ticks.jsonl"
 OBU_TRACKS = "obu.tracks.bin"
 OBU_EVENTS = "obu.events.jsonl"
+OBU_MBD = "obu.mbd.jsonl"
 OBU_MBR = "obu.mbr.jsonl"
 #: The OBU's files written per tick, in segments under ``--capture-max-mb``.
-SEGMENTED = (OBU_RX, OBU_TICKS, OBU_TRACKS, OBU_EVENTS, OBU_MBR)
+SEGMENTED = (OBU_RX, OBU_TICKS, OBU_TRACKS, OBU_EVENTS, OBU_MBD, OBU_MBR)
 #: What captures written before 2026-11-27 called two of them (the reader reads both).
 LEGACY = {OBU_RX: "obu.rx.jsonl", OBU_TRACKS: "obu.tracks.jsonl"}
 
@@ -343,10 +348,10 @@ def event(e: Any) -> dict[str, Any]:
             "t": e.t_start if e.kind == "start" else e.t_end, "t_start": e.t_start}
 
 
-def report(t_unix: float, t: float, reporter: int | None, detection: Any, bsm: Any,
-           data: bytes) -> dict[str, Any]:
-    """A misbehavior report (``obu.mbr.jsonl``): when (wall clock, host clock), who
-    reported (the host's TemporaryID), the :class:`catc.mbd.Detection` and the message
+def finding(t_unix: float, t: float, reporter: int | None, detection: Any, bsm: Any,
+            data: bytes) -> dict[str, Any]:
+    """A misbehavior finding (``obu.mbd.jsonl``): when (wall clock, host clock), who
+    found it (the host's TemporaryID), the :class:`catc.mbd.Detection` and the message
     that raised it."""
     d = detection
     return {"t_unix": t_unix, "t": t, "reporter": None if reporter is None else hex_id(reporter),
@@ -354,3 +359,11 @@ def report(t_unix: float, t: float, reporter: int | None, detection: Any, bsm: A
             "evidence": d.evidence, "other": None if d.other is None else hex_id(d.other),
             "msgCnt": bsm.msg_cnt, "sec_mark": bsm.sec_mark, "hex": data.hex()}
 
+
+def report(t_unix: float, t: float, reporter: int | None, detection: Any, bsm: Any,
+           data: bytes) -> dict[str, Any]:
+    """A misbehavior report (``obu.mbr.jsonl``; :attr:`catc.mbd.MisbehaviorDetector.reports`):
+    a finding, as :func:`finding` has it, filed once its sender's evidence passed the
+    reporting threshold.  ``found_t`` is when it was found (host clock; earlier than
+    ``t`` for the weak findings that led there); the message is the one that filed it."""
+    return {**finding(t_unix, t, reporter, detection, bsm, data), "found_t": detection.t}

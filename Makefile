@@ -5,6 +5,8 @@ PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
 SHARED ?= ../shared/data
+# pytest workers of make test (pytest-xdist; each test file runs whole on one worker)
+JOBS   ?= 2
 
 .PHONY: demo test test-vcan debs lint bench bank nn report clean install
 
@@ -30,7 +32,7 @@ demo: $(VENV)/.installed
 # above where this kernel has vcan, else tools/vcanvm.py runs them in a QEMU VM booting
 # Debian's stock kernel.  Where neither works they are reported as skipped, with the reason.
 test: lint debs
-	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -n $(JOBS) --dist loadfile
 	OPENBLAS_NUM_THREADS=1 $(BIN)/python tools/vcanvm.py pytest --if-needed
 
 # ruff, then the import rules of docs/architecture.md (import-linter; pyproject.toml has the

@@ -154,6 +154,7 @@ def measure(table, config, per: float = 0.0, seed: int = 0, apps: bool = True) -
             last_host = (m, float(ev["time"]), now)
             if cam is not None:
                 due, pending = split_due(now, pending, cam.config.max_future_s)
+                cam.apps.muted = mbd.muted(now)  # as obu.daemon.Obu.tick
                 snap = cam.step(now, m, due)
                 warn_ticks |= {(round(now - t0, 1), w.app, names.get(w.rv_id, w.rv_id))
                                for w in snap.warnings}

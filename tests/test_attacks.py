@@ -320,3 +320,32 @@ def test_a_ghost_in_the_first_second_raises_no_warning(pki, tmp_path):  # noqa: 
     assert ghost["detection"]["time_to_detect_s"] == {f"{Attacks.ID_BASE:08X}": 0.0}
     assert (s["fcw"]["tp"], s["fcw"]["fp"], s["fcw"]["fn"]) == (20, 0, 0)
     assert s["mbd"]["false_suspects"] == []
+
+
+@pytest.fixture(scope="module")
+def clean_mbd(pki, tmp_path_factory):  # noqa: F811
+    """The clean twin of the :func:`_mbd_run` attacks: the same run without one."""
+    directory = tmp_path_factory.mktemp("clean_mbd")
+    _mbd_run(pki, directory)
+    return directory
+
+
+def test_an_impersonator_is_named_by_its_certificate_not_by_its_victim(
+        pki, clean_mbd, tmp_path):  # noqa: F811
+    """``rve run --attack impersonate``: an insider sends under the leader's id, on the
+    host, signed by its own pseudonym.  Under ``--verify enforce --mbd`` each of its frames
+    is an id conflict against its signer: the leader is neither suspected nor
+    quarantined, its FCW fires on every tick the clean twin's did, and ``captures
+    defence`` counts the impersonator, not the leader, as the one flagged."""
+    from captures.defence import compare
+
+    s, counters = _mbd_run(pki, tmp_path, "impersonate:vehicle=lead,start=10,duration=2")
+    assert counters["mbd_id-conflict"] == s["attacks"]["impersonate"]["sent"] == 20
+    assert "mbd_quarantined" not in counters
+    assert (s["fcw"]["tp"], s["fcw"]["fp"], s["fcw"]["fn"]) == (20, 0, 0)
+    r = compare(clean_mbd, tmp_path)
+    assert r["lost_tp"] == {} and r["honest"]["quarantined"] == {}
+    assert r["honest"]["suspected"] == {}  # the id conflicts name the signer
+    assert r["detection"]["true_positives"] == ["impersonator"]
+    assert r["detection"]["false_positives"] == []
+    assert (r["detection"]["precision"], r["detection"]["recall"]) == (1.0, 1.0)

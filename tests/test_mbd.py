@@ -1051,3 +1051,76 @@ def test_weak_findings_are_reported_only_past_the_threshold(table, clean_plan):
     assert [(d.check, round(d.t, 1)) for d in reports] == [
         ("sudden-appearance", 8.0), ("heading", 12.0), ("heading", 16.0)]
     assert reports == found and det.counters["reported"] == 3
+
+
+def test_the_overlap_of_a_car_inside_a_truck_is_whole():
+    """F2MD's IoU cannot exceed the area ratio: a car inside a truck stays under 0.5.
+    ``overlap`` is the IoU at the smaller footprint's size: the same for equal ones."""
+    from catc.mbd.geometry import overlap
+
+    car, truck = (0.0, 0.0, 0.0, 4.5, 1.8), (0.0, 1.0, 0.0, 10.85, 2.59)
+    assert iou(car, truck) == pytest.approx(4.5 * 1.8 / (10.85 * 2.59))
+    assert overlap(car, truck) == pytest.approx(1.0)
+    half = (0.0, 2.25, 0.0, 4.5, 1.8)  # equal cars, half a length apart
+    assert overlap(car, half) == pytest.approx(iou(car, half)) == pytest.approx(1 / 3)
+    assert overlap(car, (0.0, 20.0, 0.0, 4.5, 1.8)) == 0.0
+
+
+def test_a_ghost_behind_a_truck_raises_nothing_and_blames_nobody():
+    """The dense NGSIM scene (host 232): ``rve run --attack ghost:start=5`` puts the ghost
+    20 m ahead, 8 m beyond the front of a 10.9 m truck (216) 12 m ahead, and brakes it to
+    a stop.  Behind the truck its first message is a weak sudden appearance, so it was
+    tracked: it raised FCW and EEBL (26 ticks) before it ran into the host 3.5 s later,
+    and, stopped and still sending, it got two honest cars that later drove through its
+    place quarantined.  Now: in the host's path behind another vehicle it is an
+    unconfirmed newcomer (no warning for 3 s); the truck driving through it is an
+    intersection (the IoU of a car inside a truck is 0.29); and a quarantined sender is
+    no witness against anybody."""
+    from catc.attacks import Attacks, parse
+    from hil.datasets import load
+
+    (scene,) = load(f"scene:ngsim:{shared_path('ngsim-i80-pairs')}")
+    the_plan = plan(scene, ChannelConfig(), 0)
+    attacks = Attacks([parse("ghost:start=5")], the_plan)
+    t0 = float(the_plan.events["t"][0])
+    extra = [(float(e["time"]), inj.bsm) for e in the_plan.events if e["host"]
+             for inj in attacks.injected(float(e["t"]))]
+    ghost = Attacks.ID_BASE
+    det, found, reports = _run_hosted(the_plan, extra=extra)
+    first = next(d for d in found if d.suspect == ghost)
+    assert first.check == "sudden-appearance" and first.t - t0 == pytest.approx(5.0)
+    assert first.evidence["behind"] == temp_id("216") and not is_strong(first, det.config)
+    assert ghost in det.muted(first.t + 0.1) and ghost not in det.muted(first.t + 3.0)
+    caught = next(d for d in found if d.check == "intersection")
+    assert caught.suspect == ghost and caught.other == temp_id("216")
+    assert caught.t - t0 < 6.5 and det.quarantined(ghost, caught.t + 0.05)
+    # of the others only the honest newcomers' weak sudden appearances: no report
+    assert {d.check for d in found if d.suspect != ghost} == {"sudden-appearance"}
+    assert {d.suspect for d in reports} == {ghost}
+
+
+def test_muted_ids_raise_no_warning_and_no_event(clean_plan):
+    """``SafetyApps.muted`` (what the OBU sets from ``MisbehaviorDetector.muted``): the
+    default scenario's FCW, EEBL and the rest on the braking leader, then the same run with
+    the leader muted: its warnings and events are gone, the others' stay."""
+    from catc.apps import SafetyApps
+    from catc.cam import CamConfig, ContextAwareMap
+    from catc.replay import simulate
+
+    def run(muted):
+        apps = SafetyApps()
+        apps.muted = muted
+        cam = ContextAwareMap(CamConfig(predictor="ca", origin=clean_plan.table.origin),
+                              apps)
+        warned, events = [], []
+        for snap in simulate(clean_plan, cam, wire=False):
+            warned += [(snap.t, w.app, w.rv_id) for w in snap.warnings]
+            events += [(e.app, e.rv_id) for e in snap.events]
+        return warned, events
+
+    lead = temp_id("lead")
+    warned, events = run(frozenset())
+    assert {w[1] for w in warned if w[2] == lead} >= {"fcw", "eebl"}
+    quiet, quiet_events = run(frozenset({lead}))
+    assert quiet == [w for w in warned if w[2] != lead]
+    assert quiet_events == [e for e in events if e[1] != lead]

@@ -210,7 +210,7 @@ def _honest(cap: Capture, honest: set[str], label, when: dict, sent: set
     suspected: dict[str, dict] = {}
     flagged: set[str] = set()
     for m in cap.findings or []:
-        if m["suspect"] in honest:
+        if m["suspect"] in honest and m["check"] != "id-conflict":  # names the signer
             s = suspected.setdefault(label(m["suspect"]),
                                      {"findings": 0, "reports": 0, "checks": {}})
             s["findings"] += 1

@@ -79,6 +79,8 @@ class Obu:
         (:class:`obu.status.Lags`)."""
         now = self.clock(host.sec_mark)
         due = self.frames.due(now, self.cam.config.max_future_s)
+        if self.frames.mbd is not None:  # unconfirmed newcomers raise no warning
+            self.cam.apps.muted = self.frames.mbd.muted(now)
         t0 = time.perf_counter()
         try:
             snap = self.cam.step(now, host, due)

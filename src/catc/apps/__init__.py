@@ -41,7 +41,12 @@ class AppsConfig:
 
 class SafetyApps:
     """Runs the enabled applications on each snapshot: ``apps(snapshot) -> (warnings,
-    events)``; pass it to :class:`catc.cam.ContextAwareMap` as ``apps``."""
+    events)``; pass it to :class:`catc.cam.ContextAwareMap` as ``apps``.  ``muted``: RV
+    ids on which no warning is raised (set by the caller before a step: the unconfirmed
+    newcomers of :meth:`catc.mbd.MisbehaviorDetector.muted`)."""
+
+    #: RV ids whose warnings are withheld (their tracks are kept and classified).
+    muted: frozenset[int] = frozenset()
 
     def __init__(self, config: AppsConfig | None = None) -> None:
         self.config = config or AppsConfig()
@@ -62,6 +67,8 @@ class SafetyApps:
             side = blind_spot(snap, c.bsw)
             if side:
                 found += [w for w in side if w.app in c.enabled]
+        if self.muted and found:
+            found = [w for w in found if w.rv_id not in self.muted]
         events: list[AppEvent] = []
         for app, mon in self.monitors.items():
             if not (found or mon.tracking):  # the usual tick: nothing to update or close

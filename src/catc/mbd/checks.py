@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from typing import NamedTuple
 
 from catc.mbd.config import MbdConfig
-from catc.mbd.geometry import RAD, blocks, dlon, iou, max_min_dist
+from catc.mbd.geometry import RAD, blocks, dlon, max_min_dist, overlap
 from catc.mbd.state import Senders
 
 __all__ = ["BASELINE_CHECKS", "CHECKS", "ID_CONFLICT", "TABLE", "TRACK_CHECKS", "Check",
@@ -91,7 +91,10 @@ class Observation:
       ``lat``, ``lon``, ``speed``, ``heading`` (deg, in [0, 360)), ``length``, ``width``
       (None when unavailable), and ``kx``/``ky``, metres per degree at its latitude.
     * Its sender: ``st`` (:class:`~catc.mbd.state.Sender`), its last accepted message
-      ``acc`` (None: this is its first) and all the ``senders``.
+      ``acc`` (None: this is its first) and all the ``senders``; ``discredited(tid)``,
+      whether the sender of id ``tid`` is in quarantine (no witness: a fabricated
+      vehicle's place is no intersection for anybody, nor a shadow, nor a previous
+      pseudonym).
     * The host: ``host_d`` (m; None: no host position) and, when known, its offset from
       the sender ``hx``, ``hy`` (m east, north), ``host_heading`` (deg or None) and
       ``host_k``, the curvature of its path (1/m, + turning right; 0: straight or unknown).
@@ -108,7 +111,8 @@ class Observation:
       the sender's footprint: heading ``h`` (rad), ``sin_h``, ``cos_h`` and diagonal
       ``diag`` (m)."""
 
-    __slots__ = ("acc", "ahead", "anchor_i", "bsm", "conflict", "cos_h", "diag", "dt", "dtr",
+    __slots__ = ("acc", "ahead", "anchor_i", "bsm", "conflict", "cos_h", "diag", "discredited",
+                 "dt", "dtr",
                  "follows", "h", "heading", "host_d", "host_heading", "host_k", "hx", "hy", "key",
                  "kx", "ky", "lat", "length", "lon", "rdist", "ref", "rx", "ry", "senders", "sin_h",
                  "sm", "speed", "st", "sybil", "t", "tid", "ts", "twin", "width")
@@ -121,9 +125,11 @@ class Pair:
     """A neighbour of the message's sender, for the pair checks: its id ``tid``, its last
     accepted message ``m``, where it is at this message's time (``x``, ``y`` east/north m
     from the sender, moved on by its speed over ``dt`` s; ``d`` m away) and its heading
-    ``h`` (rad).  Valid during the call only (:func:`pairs` reuses it)."""
+    ``h`` (rad); ``witness``: False when the neighbour is in quarantine (an honest car
+    driving through the place of a stopped ghost overlaps it: that is no evidence
+    against the car).  Valid during the call only (:func:`pairs` reuses it)."""
 
-    __slots__ = ("d", "dt", "h", "m", "tid", "x", "y")
+    __slots__ = ("d", "dt", "h", "m", "tid", "witness", "x", "y")
 
 
 def ratio(num: float, den: float) -> float:
@@ -155,7 +161,7 @@ def host_intersection(o: Observation, c: MbdConfig) -> Finding | None:
         return None
     hh = o.host_heading
     h = o.heading * RAD
-    inter = iou((0.0, 0.0, h, length, width),
+    inter = overlap((0.0, 0.0, h, length, width),
                 (o.hx, o.hy, h if hh is None else hh * RAD, c.host_length_m, c.host_width_m))
     inter *= (c.max_delta_inter_s - c.host_delta_s) / c.max_delta_inter_s
     if not inter > c.intersection_threshold:
@@ -226,7 +232,7 @@ def _behind(o: Observation, c: MbdConfig) -> int | None:
     for otid in o.senders.ids_near(o.lat, o.lon):
         other = get(otid)
         if other is None or other is o.st or other.acc is None \
-                or not o.t - other.first_t >= c.sa_shadow_heard_s:
+                or not o.t - other.first_t >= c.sa_shadow_heard_s or o.discredited(otid):
             continue
         m = other.acc
         dt = o.senders.pair_dt(other, o.t, o.sm)
@@ -258,7 +264,8 @@ def _continues(o: Observation, c: MbdConfig) -> bool:
     get = o.senders.by_id.get
     for otid in o.senders.ids_near(lat, lon, reach):
         other = get(otid)
-        if other is None or other.acc is None or other.tid == o.tid:
+        if other is None or other.acc is None or other.tid == o.tid \
+                or o.discredited(otid):
             continue
         m = other.acc
         dt = o.senders.pair_dt(other, o.t, o.sm)
@@ -427,16 +434,18 @@ def pairs(o: Observation, c: MbdConfig) -> Iterator[Pair]:
         p.h = oh
         p.dt = dt
         p.d = math.hypot(ox, oy)
+        p.witness = not o.discredited(otid)
         yield p
 
 
 def intersection(o: Observation, p: Pair, c: MbdConfig) -> Finding | None:
-    """F2MD IntersectionCheck / MultipleIntersectionCheck: the footprints overlap, the
-    ratio weighted by how close in time (``max_delta_inter_s``)."""
+    """F2MD IntersectionCheck / MultipleIntersectionCheck: the footprints overlap (F2MD's
+    IoU at the smaller footprint's size, :func:`~catc.mbd.geometry.overlap`), the ratio
+    weighted by how close in time (``max_delta_inter_s``)."""
     m = p.m
-    if not p.d < 0.5 * (o.diag + math.hypot(m.length, m.width)):
+    if not p.witness or not p.d < 0.5 * (o.diag + math.hypot(m.length, m.width)):
         return None
-    inter = iou((0.0, 0.0, o.h, o.length, o.width),
+    inter = overlap((0.0, 0.0, o.h, o.length, o.width),
                 (p.x, p.y, p.h, m.length, m.width))
     inter *= (c.max_delta_inter_s - abs(p.dt)) / c.max_delta_inter_s
     if not inter > c.intersection_threshold:

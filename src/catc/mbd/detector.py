@@ -19,6 +19,7 @@ from catc.mbd.checks import (
     TRACK_CHECKS,
     Detection,
     Observation,
+    in_path,
     pairs,
 )
 from catc.mbd.config import MbdConfig
@@ -102,6 +103,9 @@ class MisbehaviorDetector:
         self._quarantine = Quarantine(config, max_senders)
         self._ids = Identities(config, max_senders)
         self._o = Observation(self._senders)
+        self._o.discredited = self._discredited
+        #: TemporaryID -> until when (s) its warnings are withheld (:meth:`muted`)
+        self._unconfirmed: dict[int, float] = {}
 
     def __len__(self) -> int:
         """Senders with state (at most ``max_senders``)."""
@@ -129,6 +133,26 @@ class MisbehaviorDetector:
         key = self._key(temp_id, t, signer)
         return self._ids.ids_of(key) | {temp_id} if isinstance(key, bytes) \
             else frozenset((temp_id,))
+
+    def muted(self, t: float) -> frozenset[int]:
+        """The ids whose warnings are withheld at ``t``: unconfirmed newcomers.  A first
+        message inside the host's safety range and in its path ahead, but behind another
+        vehicle (a weak sudden appearance: it may have been in that vehicle's radio shadow,
+        or be a ghost hiding there), is tracked, not quarantined; for ``sa_confirm_s`` no
+        warning may be raised on it (a ghost that brakes at once, behind a real leader,
+        raises none; an honest car first heard there loses its warnings for that long)."""
+        u = self._unconfirmed
+        if not u:
+            return frozenset()
+        for tid in [k for k, until in u.items() if not t < until]:
+            del u[tid]
+        return frozenset(u)
+
+    def _discredited(self, tid: int) -> bool:
+        """Whether the sender of ``tid`` is in quarantine now (the message's time)."""
+        t = self._o.t
+        holder = self._ids.holder(tid, t) if self._ids else None
+        return self._quarantine.quarantined(tid if holder is None else holder, t)
 
     def _key(self, temp_id: int, t: float, signer: bytes | None) -> Hashable:
         if signer is not None:
@@ -219,6 +243,10 @@ class MisbehaviorDetector:
         if found:
             for d in found:
                 self.counters[d.check] += 1
+                if d.check == "sudden-appearance" and d.evidence["behind"] is not None \
+                        and in_path(d, c):
+                    self._unconfirmed[tid] = t + c.sa_confirm_s
+                    self.counters["unconfirmed"] += 1
             entered, self.reports = self._quarantine.punish(key, t, found)
             if entered:
                 self.counters["quarantines"] += 1

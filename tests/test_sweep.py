@@ -25,8 +25,9 @@ from catc.sweep import (
     run_cell,
     track_errors,
     truth_fcw,
+    vehicle_ahead,
 )
-from hil.datasets import load
+from hil.datasets import load, load_table
 from tests.conftest import shared_path
 
 
@@ -341,3 +342,18 @@ def test_hgp_targets_compare_with_the_best_kinematic_tracker_cell_by_cell():
     assert e["ratio"] == pytest.approx(0.9)
     assert hgp_targets(rows, "other") == []  # no HGP row there
     assert hgp_targets(rows, "absent") == []
+
+
+def test_the_vehicle_ahead_is_found_by_where_it_drives(ngsim):
+    """A sweep scores the FCW on the host and the vehicle ahead.  Two-vehicle trips list
+    the leader first; a SUMO scenario lists the host first and a scene by id, so the
+    vehicle ahead is the one most often nearest ahead in the host's lane."""
+    for t in ngsim[:20]:
+        names = list(t.tracks)
+        assert vehicle_ahead(t, t.default_host) == names[names.index(t.default_host) - 1]
+    default = load_table("scenario:highway-braking", None)
+    assert next(iter(default.tracks)) == default.default_host
+    assert vehicle_ahead(default, default.default_host) == "lead"
+    assert set(fcw_scene(default).tracks) == {"lead", default.default_host}
+    (scene,) = load(f"scene:ngsim:{shared_path('ngsim-i80-pairs')}")
+    assert vehicle_ahead(scene, scene.default_host) == "216"  # the truck ahead of 232

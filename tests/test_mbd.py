@@ -674,22 +674,36 @@ def test_a_pseudonym_change_binds_the_new_id_to_the_new_certificate(clean_plan):
     assert det.observe(late, 40.0, None, None, signer=b"someone!") == []
 
 
+def _ghost_ahead(table, ahead: float, t0: float, n: int, tid: int = 0x6A7A0000,
+                 turned: tuple[int, ...] = ()) -> list:
+    """``n`` messages of a fabricated id ``ahead`` m ahead of the host at its speed, at
+    10 Hz from ``t0`` s, its heading turned 90 degrees in messages ``turned``: ``extra``
+    for :func:`_run`."""
+    extra = []
+    for k in range(n):
+        t = t0 + 0.1 * k
+        lat, lon, hdg, v = _host_at(table, t)
+        m = BSM(msg_cnt=k % 128, temp_id=tid, sec_mark=round(t * 1000) % 60000,
+                lat=lat, lon=lon, speed=v, heading=hdg, length=4.5, width=1.8)
+        m = _shift(m, ahead * math.sin(math.radians(hdg)), ahead * math.cos(math.radians(hdg)))
+        if k in turned:
+            m = dataclasses.replace(m, heading=(hdg + 90.0) % 360.0)
+        extra.append((t, m))
+    return extra
+
+
+def _weak_ghost(table):
+    """A fabricated id 80 m ahead of the host, 8-18 s, its heading 90 degrees off at 12 s
+    and 16 s: weak findings only (``(id, extra)``)."""
+    return 0x6A7A0100, _ghost_ahead(table, 80.0, 8.0, 100, 0x6A7A0100, (40, 80))
+
+
 def test_weak_findings_accumulate_to_quarantine_a_fabricated_id(table, clean_plan):
     """Issue 28: a fabricated id with weak findings only (here a sudden appearance 80 m
     ahead of the host, beyond its safety range, and a heading 90 degrees off at 12 s and
     at 16 s) never reached three failures in 2 s.  Its evidence now adds up over F2MD's
     10 s window: quarantined at the third."""
-    ghost = 0x6A7A0100
-    extra = []
-    for k in range(100):  # 8-18 s, 80 m ahead of the host at its speed
-        t = 8.0 + 0.1 * k
-        lat, lon, hdg, v = _host_at(table, t)
-        m = BSM(msg_cnt=k % 128, temp_id=ghost, sec_mark=round(t * 1000) % 60000,
-                lat=lat, lon=lon, speed=v, heading=hdg, length=4.5, width=1.8)
-        m = _shift(m, 80 * math.sin(math.radians(hdg)), 80 * math.cos(math.radians(hdg)))
-        if k in (40, 80):
-            m = dataclasses.replace(m, heading=(hdg + 90.0) % 360.0)
-        extra.append((t, m))
+    ghost, extra = _weak_ghost(table)
     det, found = _run(clean_plan, extra=extra[:80])  # to 15.9 s: two failures
     assert [(d.check, round(d.t, 1)) for d in found] == [
         ("sudden-appearance", 8.0), ("heading", 12.0)]
@@ -1013,15 +1027,7 @@ def test_a_ghost_ahead_in_the_lane_is_still_quarantined_and_reported(table, clea
     """With the host's heading, speed and yaw rate (as the OBU passes them) the ghost
     20 m ahead in the host's lane is in its path: quarantined and reported at once."""
     ghost = 0x6A7A0000
-    extra = []
-    for k in range(30):
-        t = 8.0 + 0.1 * k
-        lat, lon, hdg, v = _host_at(table, t)
-        m = BSM(msg_cnt=k % 128, temp_id=ghost, sec_mark=round(t * 1000) % 60000,
-                lat=lat, lon=lon, speed=v, heading=hdg, length=4.5, width=1.8)
-        extra.append((t, _shift(m, 20 * math.sin(math.radians(hdg)),
-                                20 * math.cos(math.radians(hdg)))))
-    det, found, reports = _run_hosted(clean_plan, extra=extra)
+    det, found, reports = _run_hosted(clean_plan, extra=_ghost_ahead(table, 20.0, 8.0, 30))
     first = found[0]
     assert first.check == "sudden-appearance" and first.t == pytest.approx(8.0)
     assert first.evidence["along_m"] == pytest.approx(20.0, abs=3.5)
@@ -1034,23 +1040,14 @@ def test_weak_findings_are_reported_only_past_the_threshold(table, clean_plan):
     """A misbehavior report goes out once the evidence passes the reporting threshold
     (F2MD's AggregationApp, J3287): two weak findings of a fabricated id file nothing; the
     third quarantines it, and its report carries all three."""
-    ghost = 0x6A7A0100
-    extra = []
-    for k in range(100):  # as test_weak_findings_accumulate_to_quarantine_a_fabricated_id
-        t = 8.0 + 0.1 * k
-        lat, lon, hdg, v = _host_at(table, t)
-        m = BSM(msg_cnt=k % 128, temp_id=ghost, sec_mark=round(t * 1000) % 60000,
-                lat=lat, lon=lon, speed=v, heading=hdg, length=4.5, width=1.8)
-        m = _shift(m, 80 * math.sin(math.radians(hdg)), 80 * math.cos(math.radians(hdg)))
-        if k in (40, 80):
-            m = dataclasses.replace(m, heading=(hdg + 90.0) % 360.0)
-        extra.append((t, m))
+    ghost, extra = _weak_ghost(table)
     det, found, reports = _run_hosted(clean_plan, extra=extra[:80])
     assert len(found) == 2 and reports == [] and det.counters["reported"] == 0
     det, found, reports = _run_hosted(clean_plan, extra=extra)
     assert [(d.check, round(d.t, 1)) for d in reports] == [
         ("sudden-appearance", 8.0), ("heading", 12.0), ("heading", 16.0)]
     assert reports == found and det.counters["reported"] == 3
+    assert {d.suspect for d in reports} == {ghost}
 
 
 def test_the_overlap_of_a_car_inside_a_truck_is_whole():

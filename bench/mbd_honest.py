@@ -32,8 +32,12 @@ numbers.  An offline pass over both datasets takes ~15 s.
 The two should agree up to the UDP arrival order and the live host-freshness window
 (0.5 s of wall clock).
 
+``--hosts K`` replaces each scene's one host by K drawn at random (``--seed``) from every
+vehicle of its files, and prints their totals: what it finds on honest traffic should
+not rest on one host (24 hosts, seed 7: docs/log/2026-11-28-mbd-in-path.md).
+
     python bench/mbd_honest.py [--json] [--dataset SPEC ...] [--per P] [--seed N]
-        [--set KEY=VALUE ...] [--no-apps] [--live [--speed X]]
+        [--set KEY=VALUE ...] [--no-apps] [--live [--speed X]] [--hosts K]
 """
 
 from __future__ import annotations
@@ -80,6 +84,33 @@ def _missing(spec: str) -> str | None:
     if spec.startswith("scenario:") or Path(path).exists():
         return None
     return f"{path} not present (set CATC_SHARED_DATA)"
+
+
+def host_specs(spec: str, k: int, seed: int) -> list[str]:
+    """``spec`` (a ``scene:INNER[?host=ID]``) with ``k`` hosts drawn at random (seeded)
+    from every vehicle of INNER's files: so that what is measured on honest traffic does
+    not rest on one host."""
+    import random
+
+    from hil.datasets import load_files
+
+    inner = spec.split("?", 1)[0][len("scene:"):]
+    ids = sorted({v for _, tabs in load_files(inner) for t in tabs for v in t.tracks
+                  if "#" not in v}, key=lambda v: (len(v), v))
+    return [f"scene:{inner}?host={h}" for h in random.Random(seed).sample(ids, min(k, len(ids)))]
+
+
+def _hosts_summary(results: list[dict]) -> dict:
+    """Totals over the hosts of ``--hosts``: frames, findings by check, reports, honest
+    vehicles quarantined and at how many hosts."""
+    checks: Counter = Counter()
+    for r in results:
+        checks.update(r["findings_by_check"])
+    return {"hosts": len(results), "rv_frames": sum(r["rv_frames"] for r in results),
+            "findings_by_check": dict(checks.most_common()),
+            "reports": sum(r["reports"] for r in results),
+            "quarantined_vehicles": sum(r["quarantined_vehicles"] for r in results),
+            "hosts_with_a_quarantine": [r["host"] for r in results if r["quarantined_vehicles"]]}
 
 
 def _scene_info(table) -> dict:
@@ -341,20 +372,32 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--live", action="store_true",
                     help="through rve run and obu run --mbd on loopback instead")
     ap.add_argument("--speed", type=float, default=4.0, help="--live replay speed (default 4)")
+    ap.add_argument("--hosts", type=int, default=0, metavar="K",
+                    help="for each scene: K hosts drawn at random (--seed) from its files' "
+                         "vehicles instead, and their totals (offline; implies --no-apps)")
     args = ap.parse_args(argv)
     if args.live and args.set:
         ap.error("--set is offline only (obu run has no MbdConfig flags)")
 
+    if args.live and args.hosts:
+        ap.error("--hosts is offline only")
     config = mbd_config(args.set)
-    results, skipped = [], {}
+    results, skipped, hosts = [], {}, {}
     for spec in args.dataset or DEFAULT_DATASETS:
         why = _missing(spec)
         if why:
             skipped[spec] = why
             continue
+        if args.hosts and spec.startswith("scene:"):
+            rows = [offline(s, config, args.per, args.seed, False)
+                    for s in host_specs(spec, args.hosts, args.seed)]
+            hosts[spec.split("?", 1)[0]] = _hosts_summary(rows)
+            results += rows
+            continue
         results.append(live(spec, args.per, args.seed, args.speed) if args.live
                        else offline(spec, config, args.per, args.seed, not args.no_apps))
     out = {"mode": "live" if args.live else "offline", "datasets": results, "skipped": skipped,
+           "hosts": hosts,
            "mbd_config_changes": dict(s.split("=", 1) for s in args.set),
            "mbd_config": dataclasses.asdict(config), "python": platform.python_version()}
     if args.json:
@@ -365,6 +408,11 @@ def main(argv: list[str] | None = None) -> int:
           "is a false positive")
     for r in results:
         _print(r)
+    for spec, s in hosts.items():
+        print(f"\n{spec}: {s['hosts']} hosts drawn with seed {args.seed}, {s['rv_frames']} RV "
+              f"frames: findings {s['findings_by_check']}, reports {s['reports']}, honest "
+              f"vehicles quarantined {s['quarantined_vehicles']} (at hosts "
+              f"{', '.join(s['hosts_with_a_quarantine']) or 'none'})")
     for spec, why in skipped.items():
         print(f"\n{spec}: skipped ({why})")
     return 0

@@ -46,3 +46,15 @@ def test_mbd_honest_skips_absent_data(tmp_path):
     assert out.returncode == 0, out.stderr
     result = json.loads(out.stdout)
     assert result["datasets"] == [] and "not present" in next(iter(result["skipped"].values()))
+
+
+def test_mbd_honest_draws_hosts_of_a_scene():
+    spec = f"scene:ngsim:{shared_path('ngsim-i80-pairs')}"
+    out = _run("--json", "--dataset", spec, "--hosts", "2", "--seed", "5")
+    assert out.returncode == 0, out.stderr
+    result = json.loads(out.stdout)
+    (summary,) = result["hosts"].values()
+    assert summary["hosts"] == len(result["datasets"]) == 2
+    assert len({r["host"] for r in result["datasets"]}) == 2
+    assert summary["rv_frames"] == sum(r["rv_frames"] for r in result["datasets"])
+    assert "warnings" not in result["datasets"][0]  # --hosts skips the apps

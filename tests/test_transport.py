@@ -473,3 +473,14 @@ def test_can_udp_multicast_between_two_processes(netns, fd):
     assert [tuple(g) for g in result["got"]] == [(ch, d.hex()) for ch, d in payloads(count)]
     assert sent["stats"]["frames"] == count and sent["stats"]["failed"] == 0
     assert result["stats"]["errors"] == 0
+
+
+def test_free_ports_are_below_the_ephemeral_range():
+    """No socket gets them from bind(0) or by connecting, so a port a test hands to its
+    daemons is never another test's receiver (the two run side by side under xdist)."""
+    from hil.transport.udp import _ephemeral_low, free_ports
+
+    low = _ephemeral_low()
+    ports = free_ports(6) + free_ports(2, "::1")
+    assert len(set(ports)) == len(ports)
+    assert all(10000 <= p < low for p in ports) or low < 11000

@@ -29,6 +29,7 @@ import asyncio
 import contextlib
 import errno
 import logging
+import random
 import select
 import socket
 import struct
@@ -340,13 +341,41 @@ def wait_bound(ports: list[int], timeout: float = 15.0, alive=None) -> bool:
     return False
 
 
-def free_ports(n: int = 2, host: str = "127.0.0.1") -> list[int]:
-    """``n`` UDP ports on ``host`` that were free a moment ago (for tests, benches, demo)."""
-    socks = [socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET,
-                           socket.SOCK_DGRAM) for _ in range(n)]
+def _ephemeral_low() -> int:
+    """The lowest port the kernel hands out to ``bind(0)`` and to connected sockets."""
     try:
-        for s in socks:
-            s.bind((host, 0))
+        with open("/proc/sys/net/ipv4/ip_local_port_range", encoding="ascii") as f:
+            return int(f.read().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 32768
+
+
+def free_ports(n: int = 2, host: str = "127.0.0.1") -> list[int]:
+    """``n`` UDP ports on ``host`` that were free a moment ago (for tests, benches, demo).
+
+    They are drawn at random below the kernel's ephemeral range (10000 up to it): a port
+    from there is never what another socket gets from ``bind(0)`` or from connecting (a
+    sender's local port), so between this call and its user's bind no other process takes
+    it by chance, and nothing sent to it lands in someone's ephemeral socket.  (Drawn from
+    the ephemeral range, as before, a daemon of one test could send into another test's
+    receiver under pytest-xdist.)  Where that range starts below 11000, ``bind(0)``."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    low = _ephemeral_low()
+    rng = random.SystemRandom()
+    socks: list[socket.socket] = []
+    try:
+        for _ in range(50 * n):
+            if len(socks) == n:
+                break
+            s = socket.socket(family, socket.SOCK_DGRAM)
+            try:
+                s.bind((host, rng.randrange(10000, low) if low >= 11000 else 0))
+            except OSError:
+                s.close()
+                continue
+            socks.append(s)
+        if len(socks) < n:
+            raise OSError(errno.EADDRINUSE, f"no {n} free udp ports on {host}")
         return [s.getsockname()[1] for s in socks]
     finally:
         for s in socks:

@@ -53,20 +53,16 @@ def _snapshots(duration: float, per: float = 0.0, seed: int = 0):
     return table, the_plan, cam, list(simulate(the_plan, cam))
 
 
-def make_capture(directory: Path, duration: float = 3.0, *, extra_rx=(), legacy: bool = False,
-                 cap_mb: float | None = None) -> dict:
-    """A capture directory of the built-in scenario's first ``duration`` s (every message
-    delivered, decided 10 ms after it was sent), the OBU's files written by
-    :class:`obu.capture.ObuCapture` (``legacy``: as JSON lines under the names of before
-    2026-11-27); ``extra_rx`` are more ``obu.rx`` records (frames of a flood).  Returns
-    what it wrote: ``sent`` (the RVE's RV messages), ``snaps``."""
-    directory.mkdir(parents=True, exist_ok=True)
-    table, the_plan, cam, snaps = _snapshots(duration)
+def write_rve_start(directory: Path, table, the_plan, duration: float, channel: dict,
+                    **settings) -> tuple[dict, dict[str, int]]:
+    """The RVE's config and truth of a run of ``the_plan`` over ``table``'s first
+    ``duration`` s, started at ``T0`` (``settings``: more of its flags): the config and
+    each vehicle's TemporaryID."""
     ids = {v: temp_id(v) for v in the_plan.vehicles}
     config = schema.rve_config(
-        {"dataset": "scenario:highway-braking", "duration": duration}, {},
-        (table.name, table.kind, table.origin), the_plan.host_id, ids,
-        dataclasses.asdict(the_plan.config), 0, T0, schema.new_run_id())
+        {"dataset": "scenario:highway-braking", "duration": duration, **settings}, {},
+        (table.name, table.kind, table.origin), the_plan.host_id, ids, channel, 0, T0,
+        schema.new_run_id())
     (directory / schema.RVE_CONFIG).write_text(json.dumps(config, default=str))
     truth = JsonLines(directory / schema.RVE_TRUTH)
     for v in the_plan.vehicles:
@@ -78,6 +74,20 @@ def make_capture(directory: Path, duration: float = 3.0, *, extra_rx=(), legacy:
                                      float(tr.accel[i]), float(tr.yaw_rate[i]),
                                      v == the_plan.host_id))
     truth.close()
+    return config, ids
+
+
+def make_capture(directory: Path, duration: float = 3.0, *, extra_rx=(), legacy: bool = False,
+                 cap_mb: float | None = None) -> dict:
+    """A capture directory of the built-in scenario's first ``duration`` s (every message
+    delivered, decided 10 ms after it was sent), the OBU's files written by
+    :class:`obu.capture.ObuCapture` (``legacy``: as JSON lines under the names of before
+    2026-11-27); ``extra_rx`` are more ``obu.rx`` records (frames of a flood).  Returns
+    what it wrote: ``sent`` (the RVE's RV messages), ``snaps``."""
+    directory.mkdir(parents=True, exist_ok=True)
+    table, the_plan, cam, snaps = _snapshots(duration)
+    config, ids = write_rve_start(directory, table, the_plan, duration,
+                                  dataclasses.asdict(the_plan.config))
     sched = JsonLines(directory / schema.RVE_SCHEDULE)
     sent = []
     for ev in the_plan.events:

@@ -21,7 +21,6 @@ import json
 from collections import Counter
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from catc.apps import SafetyApps
@@ -34,8 +33,8 @@ from hil.datasets import load_table
 from obu.capture import ObuCapture
 from obu.frames import Frames
 from obu.status import RateLimitedLog
+from tests.test_capture_files import T0, write_rve_start
 
-T0 = 1_800_000_000.0  # the run's wall clock at dataset time 0
 DURATION = 30.0  # the leader brakes at 20 s
 REPLAY = "replay:vehicle=lead,delay=1,start=10"
 QUARANTINE_T = 15.0  # the attacked OBU quarantines the leader from here on
@@ -105,23 +104,9 @@ def _write(directory: Path, scene, attacked: bool) -> dict:
     then on (its sender quarantined), so no warning on it.  What it wrote."""
     table, the_plan, cam, snaps = scene
     directory.mkdir(parents=True)
-    ids = {v: temp_id(v) for v in the_plan.vehicles}
-    config = schema.rve_config(
-        {"dataset": "scenario:highway-braking", "duration": DURATION,
-         "attack": [REPLAY] if attacked else None}, {},
-        (table.name, table.kind, table.origin), the_plan.host_id, ids,
-        {"per": 0.0, "rate_hz": 10.0}, 0, T0, schema.new_run_id())
-    (directory / schema.RVE_CONFIG).write_text(json.dumps(config, default=str))
-    truth = JsonLines(directory / schema.RVE_TRUTH)
-    for v in the_plan.vehicles:
-        tr = table.tracks[v]
-        for i in np.flatnonzero(tr.t <= DURATION + 1e-9):
-            truth.write(schema.truth(v, ids[v], int(i), float(tr.t[i]), float(tr.lat[i]),
-                                     float(tr.lon[i]), float(tr.x[i]), float(tr.y[i]),
-                                     float(tr.speed[i]), float(tr.heading[i]),
-                                     float(tr.accel[i]), float(tr.yaw_rate[i]),
-                                     v == the_plan.host_id))
-    truth.close()
+    config, ids = write_rve_start(directory, table, the_plan, DURATION,
+                                  {"per": 0.0, "rate_hz": 10.0},
+                                  attack=[REPLAY] if attacked else None)
     sched = JsonLines(directory / schema.RVE_SCHEDULE)
     sent, copies = [], []
     lead_seq: dict[float, int] = {}

@@ -23,6 +23,9 @@ import math
 from collections import Counter
 from dataclasses import dataclass, field
 
+from pynmeagps import GET, VALCKSUM, NMEAMessage, NMEAReader
+from pynmeagps.exceptions import NMEAMessageError, NMEAParseError, NMEATypeError
+
 __all__ = ["Fix", "NmeaStream", "to_nmea"]
 
 _KNOT = 1852.0 / 3600.0
@@ -54,8 +57,6 @@ def _utc(t_unix: float) -> dt.datetime:
 
 def to_nmea(fix: Fix, talker: str = "GN") -> list[bytes]:
     """The NMEA sentences of ``fix``: GST (with standard deviations), GGA, RMC, VTG."""
-    from pynmeagps import GET, NMEAMessage
-
     when = _utc(fix.t_unix)
     ns, ew = ("N" if fix.lat >= 0 else "S"), ("E" if fix.lon >= 0 else "W")
     pos = {"lat": fix.lat, "NS": ns, "lon": fix.lon, "EW": ew}
@@ -118,9 +119,6 @@ class NmeaStream:
         return out
 
     def _line(self, line: bytes) -> Fix | None:
-        from pynmeagps import VALCKSUM, NMEAReader
-        from pynmeagps.exceptions import NMEAMessageError, NMEAParseError, NMEATypeError
-
         if not line:
             return None
         if len(line) > _MAX_LINE:

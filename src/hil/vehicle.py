@@ -105,14 +105,15 @@ def comma2k19_can(segment: Path, dbs: dict[int, Any]) -> np.ndarray:
                                            ("length", "u1"), ("data", "S8")])
     out["t"], out["bus"], out["address"] = t[keep], src[keep], address[keep]
     out["data"] = data[keep]
-    stored = np.char.str_len(data[keep]) if len(out) else np.zeros(0, int)
-    lengths = np.asarray(stored, dtype=np.uint8)
-    for bus, db in dbs.items():
-        known = {m.frame_id: m.length for m in db.messages}
+    out["length"] = np.char.str_len(out["data"]) if len(out) else 0
+    for bus, db in dbs.items():  # the DBC's length where it knows the id
+        ids = np.array([m.frame_id for m in db.messages], dtype=np.uint32)
+        lengths = np.array([m.length for m in db.messages], dtype=np.uint8)
+        order = np.argsort(ids)
+        ids, lengths = ids[order], lengths[order]
         on = out["bus"] == bus
-        for i in np.flatnonzero(on):
-            n = known.get(int(out["address"][i]))
-            if n is not None:
-                lengths[i] = n
-    out["length"] = lengths
+        k = np.clip(np.searchsorted(ids, out["address"][on]), 0, max(len(ids) - 1, 0))
+        known = (ids[k] == out["address"][on]) if len(ids) else np.zeros(on.sum(), bool)
+        sel = np.flatnonzero(on)[known]
+        out["length"][sel] = lengths[k[known]]
     return out[np.argsort(out["t"], kind="stable")]

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 
+from catc.attacks import KINDS
 from hil.config import add_can_arguments, destination, non_negative, percent, positive
 
 __all__ = ["DEFAULTS", "add_arguments"]
@@ -70,9 +71,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "certificate of PKI_DIR (rve pki init); the host channel stays "
                         "unsigned")
     p.add_argument("--attack", action="append", metavar="KIND[:KEY=VALUE,...]",
-                   help="add a misbehaving sender (repeatable): ghost, sudden, sybil, replay, "
-                        "offset, speed, unsigned, bad-signature, foreign-cert; each message "
-                        "is labelled in rve.schedule.jsonl (catc.attacks has the parameters)")
+                   help=f"add a misbehaving sender (repeatable): {', '.join(KINDS)}; each "
+                        "message is labelled in rve.schedule.jsonl (catc.attacks has the "
+                        "parameters)")
     add_can_arguments(p)
     p.add_argument("--no-progress", dest="progress", action="store_false", default=None,
                    help="no progress line on stderr")

@@ -112,10 +112,10 @@ class Observation:
       ``diag`` (m)."""
 
     __slots__ = ("acc", "ahead", "anchor_i", "bsm", "conflict", "cos_h", "diag", "discredited",
-                 "dt", "dtr",
-                 "follows", "h", "heading", "host_d", "host_heading", "host_k", "hx", "hy", "key",
-                 "kx", "ky", "lat", "length", "lon", "rdist", "ref", "rx", "ry", "senders", "sin_h",
-                 "sm", "speed", "st", "sybil", "t", "tid", "ts", "twin", "width")
+                 "dt", "dtr", "follows", "h", "heading", "host_d", "host_heading", "host_k",
+                 "hx", "hy", "key", "kx", "ky", "lat", "length", "lon", "rdist", "ref", "rx",
+                 "ry", "senders", "sin_h", "sm", "speed", "st", "sybil", "t", "tid", "ts",
+                 "twin", "width")
 
     def __init__(self, senders: Senders) -> None:
         self.senders = senders
@@ -125,11 +125,9 @@ class Pair:
     """A neighbour of the message's sender, for the pair checks: its id ``tid``, its last
     accepted message ``m``, where it is at this message's time (``x``, ``y`` east/north m
     from the sender, moved on by its speed over ``dt`` s; ``d`` m away) and its heading
-    ``h`` (rad); ``witness``: False when the neighbour is in quarantine (an honest car
-    driving through the place of a stopped ghost overlaps it: that is no evidence
-    against the car).  Valid during the call only (:func:`pairs` reuses it)."""
+    ``h`` (rad).  Valid during the call only (:func:`pairs` reuses it)."""
 
-    __slots__ = ("d", "dt", "h", "m", "tid", "witness", "x", "y")
+    __slots__ = ("d", "dt", "h", "m", "tid", "x", "y")
 
 
 def ratio(num: float, den: float) -> float:
@@ -434,16 +432,17 @@ def pairs(o: Observation, c: MbdConfig) -> Iterator[Pair]:
         p.h = oh
         p.dt = dt
         p.d = math.hypot(ox, oy)
-        p.witness = not o.discredited(otid)
         yield p
 
 
 def intersection(o: Observation, p: Pair, c: MbdConfig) -> Finding | None:
     """F2MD IntersectionCheck / MultipleIntersectionCheck: the footprints overlap (F2MD's
     IoU at the smaller footprint's size, :func:`~catc.mbd.geometry.overlap`), the ratio
-    weighted by how close in time (``max_delta_inter_s``)."""
+    weighted by how close in time (``max_delta_inter_s``).  A neighbour in quarantine is
+    no witness: an honest car driving through the place of a stopped ghost overlaps it,
+    and that is no evidence against the car."""
     m = p.m
-    if not p.witness or not p.d < 0.5 * (o.diag + math.hypot(m.length, m.width)):
+    if not p.d < 0.5 * (o.diag + math.hypot(m.length, m.width)) or o.discredited(p.tid):
         return None
     inter = overlap((0.0, 0.0, o.h, o.length, o.width),
                 (p.x, p.y, p.h, m.length, m.width))

@@ -128,12 +128,18 @@ def _clip(subject: list[tuple[float, float]], clip: list[tuple[float, float]]
     return out
 
 
+def _intersection(a: tuple[float, float, float, float, float],
+                  b: tuple[float, float, float, float, float]) -> float:
+    """The area (m²) two footprints share."""
+    # 0.5 |s| and |0.5 s| are the same float
+    return abs(_signed_area(_clip(_corners(*a), _corners(*b))))
+
+
 def iou(a: tuple[float, float, float, float, float],
         b: tuple[float, float, float, float, float]) -> float:
     """Intersection over union of two footprints ``(x, y, heading rad, length, width)``:
     F2MD ``MDMLib::RectRectFactor`` (intersection area / (area1 + area2 - intersection))."""
-    pa, pb = _corners(*a), _corners(*b)
-    inter = abs(_signed_area(_clip(pa, pb)))  # 0.5 |s| and |0.5 s| are the same float
+    inter = _intersection(a, b)
     union = a[3] * a[4] + b[3] * b[4] - inter
     return inter / union if union > 0.0 else 0.0
 
@@ -145,12 +151,10 @@ def overlap(a: tuple[float, float, float, float, float],
     as the IoU for footprints of one size; for unequal ones the IoU is capped by their
     area ratio (a 4.5 x 1.8 m car wholly inside a 10.9 x 2.6 m truck: 0.29, under F2MD's
     0.5), this is not (1.0)."""
-    pa, pb = _corners(*a), _corners(*b)
-    inter = abs(_signed_area(_clip(pa, pb)))
     small = min(a[3] * a[4], b[3] * b[4])
     if not small > 0.0:
         return 0.0
-    f = min(1.0, inter / small)
+    f = min(1.0, _intersection(a, b) / small)
     return f / (2.0 - f)
 
 

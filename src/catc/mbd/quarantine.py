@@ -15,8 +15,7 @@ held by another signer). The quarantine lasts ``quarantine_s`` from the last det
 is renewed by every new one; after a strong finding, with ``sticky_strong``, by every
 message of the principal too (a fabricated vehicle does not become real by behaving
 consistently afterwards). The rule is ours, the window F2MD's
-(:class:`~catc.mbd.config.MbdConfig`);
-docs/reference/mbd.md explains it.
+(:class:`~catc.mbd.config.MbdConfig`); docs/reference/mbd.md explains it.
 """
 
 from __future__ import annotations
@@ -28,6 +27,10 @@ from catc.mbd.checks import Detection, in_path
 from catc.mbd.config import MbdConfig
 
 __all__ = ["Principal", "Quarantine", "is_strong"]
+
+#: Findings kept per principal below the reporting threshold (the newest; a sender
+#: spraying findings is over the threshold long before).
+_PENDING_MAX = 16
 
 
 def is_strong(d: Detection, c: MbdConfig) -> bool:
@@ -96,8 +99,8 @@ class Quarantine:
             earlier = tuple(d for d in p.pending if t - d.t < c.quarantine_window_s)
             p.pending = []
             return not active, (*earlier, *found)
-        p.pending = [d for d in p.pending if t - d.t < c.quarantine_window_s][-15:]
-        p.pending += found[:16 - len(p.pending)]
+        p.pending = [d for d in p.pending if t - d.t < c.quarantine_window_s] + found
+        del p.pending[:-_PENDING_MAX]
         return False, ()
 
     def passed(self, key: Hashable, t: float) -> None:

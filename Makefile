@@ -50,16 +50,17 @@ test-vcan: $(VENV)/.installed-test debs
 # a kernel without SocketCAN one), tshark and openssl (the independent checks of the IEEE
 # 1609.2 frames: Wireshark's dissectors, OpenSSL's ECDSA), chromium and fonts-dejavu-core
 # (the live view's tests drive the real page in Debian's headless Chromium through
-# Playwright; no browser download).  Installed when missing and we are root; otherwise the
+# Playwright; no browser download), gpsd and gpsd-clients (the independent GNSS peer: gpsd
+# reads the RVE's NMEA from a pty, gpspipe reports its fixes).  Installed when missing and we are root; otherwise the
 # tests say what is missing.  The apt-get line below names the same packages.
-DEBS = can-utils iproute2 qemu-system-x86 busybox-static kmod tshark openssl chromium fonts-dejavu-core
+DEBS = can-utils iproute2 qemu-system-x86 busybox-static kmod tshark openssl chromium fonts-dejavu-core gpsd gpsd-clients
 debs:
 	@missing=$$(for p in $(DEBS); do dpkg -s $$p >/dev/null 2>&1 || echo $$p; done); \
 	if [ -z "$$missing" ]; then exit 0; fi; \
 	if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
 	  echo "debs: installing" $$missing; \
 	  apt-get update -q >/dev/null; \
-	  DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends can-utils iproute2 qemu-system-x86 busybox-static kmod tshark openssl chromium fonts-dejavu-core >/dev/null; \
+	  DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends $(DEBS) >/dev/null; \
 	else echo "debs: missing" $$missing "(not root, or no apt-get): the tests that need them say so"; fi
 
 bench: $(VENV)/.installed

@@ -26,7 +26,13 @@ from dataclasses import dataclass, field
 from pynmeagps import GET, VALCKSUM, NMEAMessage, NMEAReader
 from pynmeagps.exceptions import NMEAMessageError, NMEAParseError, NMEATypeError
 
-__all__ = ["Fix", "NmeaStream", "to_nmea"]
+__all__ = ["DEFAULT_UTC_BASE", "Fix", "NmeaStream", "to_nmea"]
+
+#: The UTC time (unix s) of dataset time 0 when a dataset has none of its own
+#: (``MobilityTable.meta["utc_base"]``): 2026-01-01T00:00:00Z.  A whole number of minutes,
+#: so a GNSS fix at dataset time ``t`` (UTC ``base + t``) has the secMark of ``t``, as the
+#: RVs' BSMs have.
+DEFAULT_UTC_BASE = 1_767_225_600
 
 _KNOT = 1852.0 / 3600.0
 _MAX_LINE = 120  # NMEA 0183 caps a sentence at 82 characters; room for long talkers

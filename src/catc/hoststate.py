@@ -17,10 +17,15 @@ What feeds which BSM field, and why (docs/reference/vehicle.md has the table):
   ``latency`` before it arrived: the receiver's fix reaches the OBU late (on the
   comma2k19 minute the u-blox fixes taken at their arrival are 1.9 m p95 off comma's
   fused pose, 17 m/s times ~0.1 s).  The latency is measured, not assumed
-  (``latency_s=None``): it is the lag at which the receiver's own speed over ground
-  best matches the wheel-speed track (a least-squares fit over the last
-  :data:`LAG_WINDOW_S`, once the speed varied enough to tell lags apart), and the
-  dead-reckoned path between the fix's time and now carries it forward.
+  (``latency_s=None``), against the wheel-speed track: over the last
+  :data:`LAG_WINDOW_S` the fixes are fitted, by least squares, to the odometry path
+  (wheel speed and heading integrated, never pulled by a fix) taken ``latency`` earlier,
+  plus an offset that drifts linearly (the odometry's own slow error).  While the speed
+  changes, a wrong latency leaves an error that grows with the speed, so the fit tells
+  it apart (it is kept only when its standard error is under :data:`LATENCY_SE_S`).  The
+  receiver's own speed over ground is no measure of it: on the minute it lags the wheel
+  speed by 0.16 s while its positions lag by ~0.08 s (the receiver filters its speed).
+  The dead-reckoned path between the fix's time and now carries the fix forward.
 * **Heading** is the yaw rate integrated, pulled towards the GNSS course over ground
   while the car moves faster than :data:`COURSE_MIN_SPEED` (below it a course is noise);
   the same loop learns the yaw-rate sensor's bias (a complementary filter with an
@@ -46,6 +51,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+
 from catc.bsm import (
     BSM,
     BrakeStatus,
@@ -63,15 +70,19 @@ __all__ = ["COURSE_MIN_SPEED", "LAG_WINDOW_S", "EstimatorConfig", "HostEstimator
 #: Below this speed (m/s) the GNSS course does not steer the heading.
 COURSE_MIN_SPEED = 3.0
 #: The window (s) of GNSS and wheel speeds over which the latency is fitted.
-LAG_WINDOW_S = 20.0
-#: The lags tried (s): 0 to 0.40 in 0.01 steps.
-_LAGS = tuple(i / 100.0 for i in range(41))
+LAG_WINDOW_S = 120.0
 #: The latency used until it is measured (s): a typical receiver's.
 LATENCY0_S = 0.1
-#: The speed must vary this much (m/s, standard deviation) in the window to fit a lag.
-_LAG_MIN_STD = 0.5
+#: A latency fit is kept when its standard error is below this (s).
+LATENCY_SE_S = 0.02
+#: Fixes in the window before a latency fit is tried.
+_LAG_MIN_FIXES = 50
+#: The fit compares the fixes' and the odometry's motion over this many fixes (1 s).
+_LAG_STEP = 10
 #: How long the dead-reckoning history is kept (s): the longest fix latency.
 _HISTORY_S = 1.0
+#: The wheel speed is used while its newest frame is at most this old (s).
+CAN_FRESH_S = 0.5
 #: The accelerations' low-pass cut-off (Hz), J2945/1.
 ACCEL_CUTOFF_HZ = 1.0
 
@@ -179,9 +190,14 @@ class HostEstimator:
         self._accel_t: dict[str, float] = {}
         #: (local t, e, n, heading) of the dead-reckoned path, newest last
         self.history: deque[tuple[float, float, float, float | None]] = deque()
-        #: (local t, wheel speed) and (fix arrival, GNSS speed) for the latency fit
+        #: (local t, wheel speed) for the speed scale; (fix arrival, GNSS speed)
         self.wheel: deque[tuple[float, float]] = deque()
         self.gnss_speed: deque[tuple[float, float]] = deque()
+        #: the odometry path (never pulled by a fix), and at each fix of the window:
+        #: (arrival, fix e, fix n, odometry e, n, velocity e, n) for the latency fit
+        self.oe = self.on = 0.0
+        self.ve = self.vn = 0.0
+        self.lag_window: deque[tuple[float, ...]] = deque()
         self.latency = LATENCY0_S if self.config.latency_s is None else self.config.latency_s
         self.latency_fitted = self.config.latency_s is not None
 
@@ -198,7 +214,7 @@ class HostEstimator:
         v = fields.get("speed_mps")
         if v is not None:
             self.wheel.append((t, float(v)))
-            while self.wheel and self.wheel[0][0] < t - LAG_WINDOW_S - 1.0:
+            while self.wheel and self.wheel[0][0] < t - 2.0 * _HISTORY_S:
                 self.wheel.popleft()
 
     def fix(self, t: float, fix: Fix) -> None:
@@ -215,8 +231,6 @@ class HostEstimator:
             self.gnss_speed.append((t, fix.speed_mps))
             while self.gnss_speed and self.gnss_speed[0][0] < t - LAG_WINDOW_S:
                 self.gnss_speed.popleft()
-            if self.config.latency_s is None and self.counters["gnss_fixes"] % 10 == 0:
-                self._fit_latency()
         std = _fix_std(fix, self.config.fix_std_m)
         if self.frame is None:
             self.frame = EnuFrame(fix.lat, fix.lon, 0.0)
@@ -228,6 +242,12 @@ class HostEstimator:
             return
         self._propagate(max(t, self.t))
         ze, zn, _ = self.frame.to_enu(fix.lat, fix.lon, 0.0)
+        if self.config.latency_s is None and self.heading is not None:
+            self.lag_window.append((t, ze, zn, self.oe, self.on, self.ve, self.vn))
+            while self.lag_window and self.lag_window[0][0] < t - LAG_WINDOW_S:
+                self.lag_window.popleft()
+            if self.counters["gnss_fixes"] % 10 == 0:
+                self._fit_latency()
         when = t - self.latency
         pe, pn, ph = self._at(when)
         # position: a Kalman update of the state now with the fix's innovation at `when`
@@ -281,7 +301,7 @@ class HostEstimator:
             self.counters["gnss_silent"] += 1
         lat, lon, _ = self.frame.to_geodetic(self.e, self.n, 0.0)
         c = self.can_state
-        speed = c.get("speed_mps")
+        speed, _ = self._speed()
         yaw = c.get("yaw_rate_dps")
         return HostState(
             t_gnss=t + self.offset, lat=float(lat), lon=float(lon), elev=self.elev,
@@ -303,14 +323,18 @@ class HostEstimator:
         dt = t - self.t
         if dt <= 0.0:
             return
-        v = self.can_state.get("speed_mps")
+        v, from_can = self._speed()
         yaw = self.can_state.get("yaw_rate_dps")
         if self.heading is not None and v is not None:
-            v = float(v) * self.scale
+            v = v * self.scale if from_can else v
             rate = 0.0 if yaw is None else float(yaw) - self.bias
             mid = math.radians(self.heading + 0.5 * rate * dt)
-            self.e += v * dt * math.sin(mid)
-            self.n += v * dt * math.cos(mid)
+            de, dn = v * dt * math.sin(mid), v * dt * math.cos(mid)
+            self.e += de
+            self.n += dn
+            self.oe += de
+            self.on += dn
+            self.ve, self.vn = de / dt, dn / dt
             self.heading = (self.heading + rate * dt) % 360.0
             q = self.config.dr_noise * max(v, 1.0)
             self.var += q * q * dt
@@ -320,6 +344,17 @@ class HostEstimator:
         self.history.append((t, self.e, self.n, self.heading))
         while len(self.history) > 2 and self.history[1][0] < t - _HISTORY_S:
             self.history.popleft()
+
+    def _speed(self) -> tuple[float | None, bool]:
+        """The speed (m/s) and whether it is CAN's: the wheel speed while its frames come
+        (:data:`CAN_FRESH_S`), else the newest GNSS speed over ground."""
+        v = self.can_state.get("speed_mps")
+        if v is not None and self.wheel and self.t is not None \
+                and self.t - self.wheel[-1][0] <= CAN_FRESH_S:
+            return float(v), True
+        if self.gnss_speed:
+            return self.gnss_speed[-1][1], False
+        return (None if v is None else float(v)), v is not None
 
     def _at(self, when: float) -> tuple[float, float, float | None]:
         """The dead-reckoned (e, n, heading) at local ``when`` (interpolated in the
@@ -352,31 +387,38 @@ class HostEstimator:
         self.accel[name] += alpha * (value - self.accel[name])
 
     def _fit_latency(self) -> None:
-        """The lag at which the GNSS speed best matches the wheel speed (scaled by their
-        least-squares ratio), over the window; kept when the speed varied enough."""
-        pairs = list(self.gnss_speed)
-        if len(pairs) < 50 or len(self.wheel) < 50:
+        """Fit the latency over the window (see the module docstring).  Over each second
+        (:data:`_LAG_STEP` fixes) the fixes moved ``dz`` and the odometry ``do``, along
+        the track; a fix placed ``latency`` late moved ``do - latency * dv``, with ``dv``
+        the change of the odometry's speed, and a wheel-speed scale error ``s`` adds
+        ``s * do``: least squares on ``dz - do = -latency * dv + s * do``."""
+        w = list(self.lag_window)
+        if len(w) < _LAG_MIN_FIXES:
             return
-        g = [s for _, s in pairs]
-        mean = sum(g) / len(g)
-        if math.sqrt(sum((x - mean) ** 2 for x in g) / len(g)) < _LAG_MIN_STD:
+        arr = np.asarray(w)
+        _, ze, zn, oe, on, ve, vn = arr.T
+        k = _LAG_STEP
+        speed = np.hypot(ve, vn)
+        ue, un = ve / np.maximum(speed, 1e-6), vn / np.maximum(speed, 1e-6)
+        ue, un = 0.5 * (ue[k:] + ue[:-k]), 0.5 * (un[k:] + un[:-k])
+        dz = (ze[k:] - ze[:-k]) * ue + (zn[k:] - zn[:-k]) * un
+        do = (oe[k:] - oe[:-k]) * ue + (on[k:] - on[:-k]) * un
+        dv = (ve[k:] - ve[:-k]) * ue + (vn[k:] - vn[:-k]) * un
+        a = np.column_stack([-dv, do])
+        coef, _, rank, _ = np.linalg.lstsq(a, dz - do, rcond=None)
+        if rank < 2:
             return
-        wt = [w[0] for w in self.wheel]
-        ws = [w[1] for w in self.wheel]
-        best = None
-        for lag in _LAGS:
-            w = [_interp_lists(wt, ws, t - lag) for t, _ in pairs]
-            if any(x is None for x in w):
-                continue
-            sww = sum(x * x for x in w)
-            if sww <= 0.0:
-                continue
-            s = sum(x * y for x, y in zip(w, g, strict=True)) / sww
-            r = sum((y - s * x) ** 2 for x, y in zip(w, g, strict=True))
-            if best is None or r < best[0]:
-                best = (r, lag)
-        if best is not None:
-            self.latency, self.latency_fitted = best[1], True
+        resid = dz - do - a @ coef
+        sigma2 = float(resid @ resid) / max(1, len(resid) - 2)
+        try:
+            se = math.sqrt(sigma2 * float(np.linalg.inv(a.T @ a)[0, 0]))
+        except np.linalg.LinAlgError:
+            return
+        lag = float(coef[0])
+        if se < LATENCY_SE_S and 0.0 <= lag <= 1.0:
+            self.latency = lag if not self.latency_fitted \
+                else self.latency + 0.3 * (lag - self.latency)
+            self.latency_fitted = True
             self.counters["gnss_latency_fits"] += 1
 
 

@@ -99,3 +99,21 @@ def radar(segment: Path) -> dict[str, np.ndarray]:
     return {"t": np.asarray(t, dtype=np.float64), "forward": v[:, 0], "left": v[:, 1],
             "rel_speed": v[:, 2], "address": v[:, 5].astype(np.int64),
             "new": v[:, 6] > 0}
+
+
+def table(path: Path | str, with_can: bool = True):
+    """The segment at ``path`` as a trip (:func:`catc.datasets.comma2k19.build`): the
+    host from comma's pose, the RVs from its radar, and in ``meta`` the real CAN of
+    buses 0 and 1 and the u-blox fixes for the RVE's vehicle side."""
+    from catc.datasets.comma2k19 import build
+
+    segment = segment_of(path)
+    can = None
+    if with_can:
+        from hil.vehicle import comma2k19_can, rav4_lengths
+
+        lengths = rav4_lengths()
+        can = comma2k19_can(segment, {0: lengths[0], 1: lengths[1]})
+    week = float(np.load(segment / "global_pose" / "frame_gps_times.npy")[0, 0])
+    fix_t, fixes = ublox_fixes(segment)
+    return build(segment.name, pose(segment), radar(segment), fix_t, fixes, can, week)

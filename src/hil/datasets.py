@@ -3,7 +3,9 @@ content), ``KIND:PATH``, or ``scenario:NAME`` (a built-in scenario, ``hil/scenar
 directory means every file in it that parses.  ``scene:SPEC`` (SPEC one of those, naming
 one file), optionally ending in ``?host=ID``, is every vehicle of that file's trips in one
 trip with one host (:mod:`catc.datasets.scene`; e.g.
-``scene:ngsim:../shared/data/ngsim-i80-pairs?host=232``).  This is the one place that
+``scene:ngsim:../shared/data/ngsim-i80-pairs?host=232``).  ``comma2k19:PATH`` is a
+comma2k19 segment (a folder of NumPy arrays): its host and the vehicles its radar
+tracked (:mod:`catc.datasets.comma2k19`).  This is the one place that
 reads dataset files, for ``rve run`` and for every ``captures`` command; the parsers in
 :mod:`catc.datasets` work on their text, or on their bytes when the file is not text (an
 OBU ``.bin`` log) or the kind is ``ode``.
@@ -67,6 +69,25 @@ def _scene(spec: str) -> list[tuple[Path, list[MobilityTable]]]:
         raise DatasetError(f"dataset {spec!r}: {err}") from None
 
 
+#: The prefix of a comma2k19 segment (a folder of NumPy arrays, not a file to parse).
+COMMA = "comma2k19:"
+
+
+def _comma(spec: str) -> list[tuple[Path, list[MobilityTable]]]:
+    """``comma2k19:PATH``: the segment at PATH (or the one segment in it), one trip
+    (:mod:`catc.datasets.comma2k19`)."""
+    from hil import comma2k19
+
+    path = Path(spec[len(COMMA):])
+    try:
+        return [(path, [comma2k19.table(path)])]
+    except InputError as err:
+        raise DatasetError(f"dataset {spec!r}: {err}") from None
+    except (ValueError, KeyError, IndexError) as err:
+        raise DatasetError(f"dataset {spec!r}: not a usable comma2k19 segment: {err}") \
+            from None
+
+
 def _split(spec: str) -> tuple[str | None, Path]:
     kind, sep, rest = spec.partition(":")
     if sep and kind in KINDS:
@@ -95,6 +116,8 @@ def load_files(spec: str) -> list[tuple[Path, list[MobilityTable]]]:
     """Like :func:`load`, grouped by the file each trip came from (only files that parsed)."""
     if spec.startswith(SCENE):
         return _scene(spec)
+    if spec.startswith(COMMA):
+        return _comma(spec)
     kind, path = _split(_resolve(spec))
     if not path.exists():
         raise DatasetError(f"dataset {spec!r}: no such file or directory")

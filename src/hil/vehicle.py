@@ -28,7 +28,8 @@ import numpy as np
 from catc.vehicle import VehicleProfile
 from hil.errors import InputError
 
-__all__ = ["ProfileError", "comma2k19_can", "load_dbc", "load_profile", "profile_names"]
+__all__ = ["ProfileError", "comma2k19_can", "load_dbc", "load_profile", "profile_names",
+           "rav4_lengths"]
 
 
 class ProfileError(InputError):
@@ -88,11 +89,25 @@ def load_profile(spec: str, dbc: Path | None = None) -> tuple[VehicleProfile, An
     return profile, db
 
 
+def rav4_lengths() -> dict[int, dict[int, int]]:
+    """The 2017 RAV4's frame lengths by bus and CAN id
+    (``catc/vehicle/profiles/toyota_rav4_2017_lengths.json``: opendbc's lengths where its
+    DBCs know the id, else the longest frame of the id in the comma2k19 minute)."""
+    doc = json.loads(resources.files("catc").joinpath(
+        "vehicle", "profiles", "toyota_rav4_2017_lengths.json").read_text(encoding="utf-8"))
+    out: dict[int, dict[int, int]] = {}
+    for part in ("observed", "dbc"):  # the DBC's length wins
+        for bus, ids in doc[part].items():
+            out.setdefault(int(bus), {}).update({int(k, 16): int(v) for k, v in ids.items()})
+    return out
+
+
 def comma2k19_can(segment: Path, dbs: dict[int, Any]) -> np.ndarray:
-    """The segment's raw CAN of the buses in ``dbs`` (bus -> cantools database, whose
-    message lengths restore the stored frames), in time order: a structured array of
-    ``t`` (s, the segment's boot clock), ``bus``, ``address``, ``length`` and ``data``
-    (8 bytes, zero-padded)."""
+    """The segment's raw CAN of the buses in ``dbs`` (bus -> a cantools database, or a
+    mapping of CAN id -> length such as :func:`rav4_lengths` gives: the lengths that
+    restore the stored frames), in time order: a structured array of ``t`` (s, the
+    segment's boot clock), ``bus``, ``address``, ``length`` and ``data`` (8 bytes,
+    zero-padded)."""
     base = Path(segment) / "processed_log" / "CAN" / "raw_can"
     try:
         t, src, address, data = (np.load(base / f"{n}.npy") for n in
@@ -107,8 +122,10 @@ def comma2k19_can(segment: Path, dbs: dict[int, Any]) -> np.ndarray:
     out["data"] = data[keep]
     out["length"] = np.char.str_len(out["data"]) if len(out) else 0
     for bus, db in dbs.items():  # the DBC's length where it knows the id
-        ids = np.array([m.frame_id for m in db.messages], dtype=np.uint32)
-        lengths = np.array([m.length for m in db.messages], dtype=np.uint8)
+        known_lengths = ({m.frame_id: m.length for m in db.messages}
+                         if hasattr(db, "messages") else dict(db))
+        ids = np.array(list(known_lengths), dtype=np.uint32)
+        lengths = np.array(list(known_lengths.values()), dtype=np.uint8)
         order = np.argsort(ids)
         ids, lengths = ids[order], lengths[order]
         on = out["bus"] == bus

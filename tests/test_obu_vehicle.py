@@ -350,3 +350,35 @@ def test_bad_vehicle_flags_are_one_line_and_exit_2(tmp_path, args, needle):
     assert out.returncode == 2, out.stderr
     lines = out.stderr.strip().splitlines()
     assert len(lines) == 1 and needle in lines[0], lines
+
+
+def test_gnss_specs():
+    from obu.options import GnssSpec, gnss_spec
+
+    assert gnss_spec("udp:127.0.0.1:4502") == GnssSpec("udp", "127.0.0.1", 4502)
+    assert gnss_spec("serial:/dev/pts/3@115200") == GnssSpec("serial", path="/dev/pts/3",
+                                                             baud=115200)
+    assert gnss_spec("serial:/dev/ttyACM0").baud is None
+    assert gnss_spec("gpsd") == GnssSpec("gpsd", "127.0.0.1", 2947)
+    assert gnss_spec("gpsd:localhost") == GnssSpec("gpsd", "localhost", 2947)
+    assert gnss_spec("gpsd:127.0.0.1:3000") == GnssSpec("gpsd", "127.0.0.1", 3000)
+    assert gnss_spec("gpsd:[::1]:3000") == GnssSpec("gpsd", "::1", 3000)
+    assert gnss_spec("gpsd:::1") == GnssSpec("gpsd", "::1", 2947)
+    for bad in ("tcp:1.2.3.4:5", "udp:nope", "serial:", "serial:/dev/x@fast"):
+        with pytest.raises(Exception, match="not"):
+            gnss_spec(bad)
+
+
+def test_a_gpsd_tpv_is_a_fix_with_its_time_and_errors():
+    from obu.vehicle import _tpv_fix
+
+    fix = _tpv_fix({"class": "TPV", "mode": 3, "time": "2026-12-06T05:27:17.300Z",
+                    "lat": 42.3, "lon": -83.7, "altHAE": 180.5, "alt": 215.0,
+                    "speed": 15.0, "track": 30.0, "epx": 0.7, "epy": 0.4})
+    assert fix.t_unix == pytest.approx(1796534837.3, abs=1e-6)
+    assert (fix.alt_m, fix.speed_mps, fix.course_deg) == (180.5, 15.0, 30.0)
+    assert (fix.std_lon_m, fix.std_lat_m) == (0.7, 0.4)
+    for doc in ({"class": "TPV", "mode": 1, "time": "2026-12-06T05:27:17Z"},
+                {"class": "SKY"}, [], {"class": "TPV", "mode": 2, "lat": 1, "lon": 2},
+                {"class": "TPV", "mode": 2, "time": "yesterday", "lat": 1, "lon": 2}):
+        assert _tpv_fix(doc) is None

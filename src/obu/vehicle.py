@@ -397,7 +397,7 @@ class VehicleHost:
         while True:
             now = time.monotonic()
             g = est.gnss_time(now) * _PER_S
-            if k is None:
+            if k is None or k > g + 10:  # the first, or GNSS time went back a second
                 k = math.ceil(g - 1e-4)
             wait = est.local_time(k / _PER_S) - now
             if wait > 0.0:  # re-read the clock at least every 50 ms: a fix may move it

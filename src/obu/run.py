@@ -41,6 +41,11 @@ Outputs:
   (rewritten every second and at the end); ``--capture-max-mb`` caps them
   (:mod:`obu.capture`).
 
+``--host-source vehicle`` (:mod:`obu.vehicle`): the host's frames are not received but
+made from the car's own CAN bus and a GNSS receiver every 100 ms of GNSS time, and go
+through the same path as received host frames; frames on the private host channel are
+then counted (``host_channel_ignored``) and dropped.
+
 The host channel defends itself (:class:`obu.host.HostGate`): only the host's id
 (``--host-id``, or the first heard) is believed, and only frames its own motion explains:
 no clock jump, no position or speed it cannot reach.  The rest are counted

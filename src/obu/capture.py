@@ -34,7 +34,11 @@ from catc.cam import MapSnapshot
 from hil.capture import GzipJsonLines, JsonLines, TrackWriter, claim, finish, schema, versions
 from hil.errors import write_error
 
-__all__ = ["ObuCapture", "Received"]
+__all__ = ["OBU_VEHICLE", "ObuCapture", "Received"]
+
+#: The host's estimated state at every tick, with ``--host-source vehicle``
+#: (:func:`obu.vehicle.vehicle_record`); not segmented.
+OBU_VEHICLE = "obu.vehicle.jsonl"
 
 #: An RV message at its tick: the BSM, its receive time (unix s), its octets and its
 #: IEEE 1609.2 verdict (None when frames are not verified).
@@ -58,6 +62,8 @@ class ObuCapture:
         self.segment = 0
         self.dropped: list[int] = []
         self._open(0)
+        self.vehicle_log = (JsonLines(directory / OBU_VEHICLE)
+                            if getattr(args, "host_source", None) == "vehicle" else None)
         self.settings = schema.settings(args)
         self.origin_written = False
         self.write_config(None)
@@ -177,6 +183,12 @@ class ObuCapture:
         """A warning's start or end (:func:`hil.capture.schema.event`)."""
         self.events.write(record)
 
+    def vehicle(self, record: dict[str, Any]) -> None:
+        """The host's estimated state at a tick (``--host-source vehicle``), flushed."""
+        if self.vehicle_log is not None:
+            self.vehicle_log.write(record)
+            self.vehicle_log.flush()
+
     def tick(self, snap: MapSnapshot, host_sec_mark: int, step_ms: float, decided: float,
              received: list[Received]) -> None:
         """One tick: the RV messages it took, the tick, its tracks; then flush (and, with
@@ -209,7 +221,8 @@ class ObuCapture:
         the run ended; ``failure`` (a write that failed just before) or a file that could
         not be written now raises once the end record says so (the run's own error, when
         it had one, stays its reason)."""
-        failure = finish(self._files(), failure)
+        failure = finish(self._files() + [f for f in (self.vehicle_log,) if f is not None],
+                         failure)
         if failure is not None and exit != "error":
             exit, reason = schema.failed(failure)
         self.write_end(exit, reason, **counts)

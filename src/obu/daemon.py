@@ -51,6 +51,7 @@ class Obu:
         self.host_arrival = 0.0  # the ticking host frame's arrival (unix s)
         self.last_frame = time.monotonic()
         self.web: Any = None  # the live view's hub (obu.web.Hub) when --web is on
+        self.vehicle: Any = None  # obu.vehicle.VehicleHost with --host-source vehicle
 
     def frame(self, channel: str, data: bytes, rx_unix: float) -> BSM | None:
         """One received frame (:meth:`obu.frames.Frames.take`): the host's BSM when it
@@ -158,12 +159,16 @@ class Obu:
 
     def all_counters(self, transport_stats: dict[str, int]) -> dict[str, Any]:
         """Every counter (:meth:`obu.status.Status.all_counters`), and the live view's
-        (``web_``: what it refused and cut off, :mod:`obu.web`) when it is on."""
+        (``web_``: what it refused and cut off, :mod:`obu.web`) when it is on; with
+        ``--host-source vehicle`` the car's and the GNSS receiver's (``can_``, ``nmea_``,
+        ``gnss_``, ``vehicle_``: :meth:`obu.vehicle.VehicleHost.all_counters`)."""
         out = self.status.all_counters(
             len(self.frames.pending), self.cam.tentative, self.cam.counters,
             transport_stats, None if self.gc is None else self.gc.counters())
         if self.web is not None:
             out.update({f"web_{k}": v for k, v in self.web.counters.items()})
+        if self.vehicle is not None:
+            out.update(self.vehicle.all_counters())
         return out
 
     def close(self, exit: str = "clean", reason: str = "",

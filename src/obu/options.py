@@ -5,12 +5,16 @@
 from __future__ import annotations
 
 import argparse
+from dataclasses import dataclass
 
 from catc.predict import NAMES
 from hil.capture.schema import OBU_MBD, OBU_MBR
 from hil.config import add_can_arguments, address, non_negative, positive, web_address
 
-__all__ = ["DEFAULTS", "add_arguments"]
+__all__ = ["DEFAULTS", "GPSD_PORT", "GnssSpec", "add_arguments", "gnss_spec", "latency"]
+
+#: gpsd's port.
+GPSD_PORT = 2947
 
 DEFAULTS = {
     "transport": "udp", "listen": ("127.0.0.1", 4500), "host_listen": ("127.0.0.1", 4501),
@@ -18,8 +22,60 @@ DEFAULTS = {
     "warnings": None, "collect_ms": 5.0, "can_interface": "virtual", "can_channel": None,
     "can_fd": False, "progress": True, "max_tracks": 1000, "verify": "off", "trust": None,
     "mbd": False, "web": None, "host_id": None, "signatures": "strict",
-    "capture_max_mb": None,
+    "capture_max_mb": None, "host_source": "channel", "vehicle": "toyota-rav4-2017",
+    "dbc": None, "vehicle_can_interface": "virtual", "vehicle_can_channel": None,
+    "vehicle_can_fd": False, "gnss": None, "gnss_delay": 0.0, "gnss_latency": "auto",
 }
+
+
+@dataclass(frozen=True)
+class GnssSpec:
+    """Where the fixes come from (``--gnss``): ``udp`` (host, port), ``serial`` (path,
+    baud) or ``gpsd`` (host, port)."""
+
+    kind: str
+    host: str = "127.0.0.1"
+    port: int = GPSD_PORT
+    path: str = ""
+    baud: int | None = None
+
+    def __str__(self) -> str:
+        if self.kind == "serial":
+            return f"serial:{self.path}" + (f"@{self.baud}" if self.baud else "")
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"{self.kind}:{host}:{self.port}"
+
+
+def gnss_spec(text: str) -> GnssSpec:
+    """``--gnss``: ``udp:HOST:PORT``, ``serial:PATH[@BAUD]`` or ``gpsd[:HOST[:PORT]]``
+    (default 127.0.0.1:2947); the argparse ``type``."""
+    kind, _, rest = text.partition(":")
+    if kind == "udp":
+        return GnssSpec("udp", *address(rest))
+    if kind == "serial" and rest:
+        path, at, baud = rest.partition("@")
+        if at and not (baud.isdigit() and int(baud) > 0):
+            raise argparse.ArgumentTypeError(f"not a baud rate: {text!r}")
+        return GnssSpec("serial", path=path, baud=int(baud) if at else None)
+    if kind == "gpsd":
+        if not rest:
+            return GnssSpec("gpsd")
+        if rest.count(":") == 1 or (rest.startswith("[") and "]:" in rest):
+            return GnssSpec("gpsd", *address(rest))
+        return GnssSpec("gpsd", rest.strip("[]"), GPSD_PORT)  # a host alone
+    raise argparse.ArgumentTypeError(
+        f"not a GNSS source: {text!r} (udp:HOST:PORT, serial:PATH[@BAUD], "
+        f"gpsd[:HOST[:PORT]])")
+
+
+def latency(text: str) -> str | float:
+    """``--gnss-latency``: ``auto`` (measured against the wheel speed) or 0..1 s."""
+    if text == "auto":
+        return text
+    value = non_negative(text)
+    if value > 1.0:
+        raise argparse.ArgumentTypeError(f"a latency from 0 to 1 s, got {text}")
+    return value
 
 
 def temporary_id(text: str) -> int:
@@ -86,5 +142,45 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "every RV frame that passes verification: findings go to "
                         f"{OBU_MBD}, reports (past the reporting threshold) to {OBU_MBR}, "
                         "and a quarantined sender is not tracked")
+    add_vehicle_arguments(p)
     p.add_argument("--no-progress", dest="progress", action="store_false", default=None,
                    help="no status line on stderr")
+
+
+def gnss_delay(text: str) -> float:
+    """``--gnss-delay``: 0..5 s."""
+    value = non_negative(text)
+    if value > 5.0:
+        raise argparse.ArgumentTypeError(f"a delay from 0 to 5 s, got {text}")
+    return value
+
+
+def add_vehicle_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of ``--host-source vehicle`` (:mod:`obu.vehicle`)."""
+    p.add_argument("--host-source", choices=("channel", "vehicle"),
+                   help="where the host vehicle's own state comes from: channel (default: "
+                        "a ready-made BSM on the private host channel, --host-listen or "
+                        "the host CAN id) or vehicle (its CAN bus and a GNSS receiver, "
+                        "fused; needs --gnss)")
+    p.add_argument("--vehicle", metavar="PROFILE",
+                   help="vehicle profile: a shipped name or a JSON file "
+                        "(default toyota-rav4-2017)")
+    p.add_argument("--dbc", metavar="PATH", help="a full DBC of the car, read instead of "
+                   "the profile's own")
+    p.add_argument("--vehicle-can-interface", choices=("socketcan", "virtual", "udp_multicast"),
+                   help="python-can interface of the car's bus (default virtual)")
+    p.add_argument("--vehicle-can-channel", metavar="NAME",
+                   help="the car's CAN channel, e.g. can0 (default per interface: can0, "
+                        "catc-vehicle, 239.74.163.3)")
+    p.add_argument("--vehicle-can-fd", action="store_true", default=None,
+                   help="the car's bus is CAN FD")
+    p.add_argument("--gnss", type=gnss_spec, metavar="SPEC",
+                   help="the GNSS receiver: udp:HOST:PORT (NMEA datagrams), "
+                        "serial:PATH[@BAUD] (NMEA on a serial device or pty) or "
+                        "gpsd[:HOST[:PORT]] (gpsd's JSON; default 127.0.0.1:2947)")
+    p.add_argument("--gnss-delay", type=gnss_delay, metavar="S",
+                   help="how long after its UTC stamp a fix's sentences arrive, for the "
+                        "clock (default 0)")
+    p.add_argument("--gnss-latency", type=latency, metavar="auto|S",
+                   help="how old a fix's position is when it arrives: auto (default: "
+                        "measured against the wheel speed) or S seconds (0..1)")

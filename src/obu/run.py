@@ -41,6 +41,11 @@ Outputs:
   (rewritten every second and at the end); ``--capture-max-mb`` caps them
   (:mod:`obu.capture`).
 
+``--host-source vehicle`` (:mod:`obu.vehicle`): the host's frames are not received but
+made from the car's own CAN bus and a GNSS receiver every 100 ms of GNSS time, and go
+through the same path as received host frames; frames on the private host channel are
+then counted (``host_channel_ignored``) and dropped.
+
 The host channel defends itself (:class:`obu.host.HostGate`): only the host's id
 (``--host-id``, or the first heard) is believed, and only frames its own motion explains:
 no clock jump, no position or speed it cannot reach.  The rest are counted
@@ -87,21 +92,39 @@ async def _open_receiver(args: argparse.Namespace) -> Receiver:
                                fd=bool(args.can_fd))
 
 
-def _where(args: argparse.Namespace) -> str:
+def _where(args: argparse.Namespace, vehicle=None) -> str:
     if args.transport == "udp":
-        return "udp " + ", ".join(f"{h}:{p}" for h, p in (args.listen, args.host_listen))
-    return f"can {args.can_interface} {args.can_channel}"
+        where = "udp " + ", ".join(f"{h}:{p}" for h, p in (args.listen, args.host_listen))
+    else:
+        where = f"can {args.can_interface} {args.can_channel}"
+    return where if vehicle is None else f"{where}; host: {vehicle.where()}"
 
 
 async def serve(args: argparse.Namespace) -> dict:
     """Receive and step until stopped; returns the final counters."""
     obu = Obu(args)
+    inbox: deque[tuple[str, bytes, float]] = deque()  # frames in arrival order
+    arrived = asyncio.Event()
+
+    def push(channel: str, data: bytes, arrival: float) -> None:
+        inbox.append((channel, data, arrival))
+        arrived.set()
+
+    rx = None
     try:
         rx = await _open_receiver(args)
+        if getattr(args, "host_source", "channel") == "vehicle":
+            from obu.vehicle import VehicleHost
+
+            obu.vehicle = VehicleHost(args, push, obu.log, obu.cap)
+            await obu.vehicle.start()
     except BaseException as err:
+        if rx is not None:
+            await rx.aclose()
         with contextlib.suppress(OSError):  # err, not a capture file, ends the run
             obu.close(*schema.failed(err))
         raise
+    vehicle = obu.vehicle
     stop = asyncio.Event()
     stopped_by: list[str] = []  # the signal that stopped the run
     loop = asyncio.get_running_loop()
@@ -109,15 +132,17 @@ async def serve(args: argparse.Namespace) -> dict:
         loop.add_signal_handler(sig, lambda s=sig: (stopped_by.append(s.name), stop.set()))
     ending = ("error", "")  # until the loop ends without an exception
     raised = False  # an exception ends the run: it is the one to raise
-    inbox: deque[tuple[str, bytes, float]] = deque()  # frames in arrival order
     pending = None  # a believed host frame that ended the last tick's collection
-    arrived = asyncio.Event()
 
     async def pump() -> None:
         while True:
             r = await rx.recv()
-            inbox.append((r.channel, r.data, r.arrival))
-            arrived.set()
+            if vehicle is not None and r.channel == "host":  # the host is the car's
+                obu.counters["host_channel_ignored"] += 1
+                obu.log("host_channel_ignored", "a frame on the private host channel "
+                        "ignored (--host-source vehicle)")
+                continue
+            push(r.channel, r.data, r.arrival)
 
     pumping = asyncio.create_task(pump())
     runner = None
@@ -132,7 +157,7 @@ async def serve(args: argparse.Namespace) -> dict:
     obu.gc = GcPolicy()  # start-up done: freeze it; collections after ticks only
     # receiving from here on (frames already wait in the sockets' or the bus's queue):
     # what a launcher waits for before it sends, whatever the transport or namespace
-    print(f"obu: ready ({_where(args)})", file=sys.stderr, flush=True)
+    print(f"obu: ready ({_where(args, vehicle)})", file=sys.stderr, flush=True)
     started = time.monotonic()
     last_status, frames_at_status = started, 0
     done = "stopped"  # why the loop ended, when no signal did
@@ -197,6 +222,8 @@ async def serve(args: argparse.Namespace) -> dict:
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.remove_signal_handler(sig)
         pumping.cancel()
+        if vehicle is not None:
+            await vehicle.aclose()
         if runner is not None:
             await runner.cleanup()
         backlog = rx.backlog()
@@ -235,6 +262,21 @@ def fix_mmap_threshold(size: int = 128 * 1024) -> bool:
         return False
 
 
+def _check_vehicle(args: argparse.Namespace) -> None:
+    """``--host-source vehicle``: its GNSS source given, its profile and DBC readable
+    (ValueError, one line: :class:`hil.vehicle.ProfileError`), before anything starts."""
+    if getattr(args, "host_source", "channel") != "vehicle":
+        return
+    if args.gnss is None:
+        raise ValueError("--host-source vehicle needs --gnss SPEC (udp:HOST:PORT, "
+                         "serial:PATH[@BAUD] or gpsd[:HOST[:PORT]])")
+    from pathlib import Path
+
+    from hil.vehicle import load_profile
+
+    load_profile(args.vehicle, Path(args.dbc) if args.dbc else None)
+
+
 def run(args: argparse.Namespace) -> int:
     """``obu run`` after flags and config are merged; the exit status."""
     fix_mmap_threshold()
@@ -244,6 +286,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         check(args.predictor)
         verifier(args)  # the trust store, checked before anything starts
+        _check_vehicle(args)
     except ValueError as err:  # a neural predictor without PyTorch or its weights, a bad
         # --trust (hil.pki.PkiError)
         print(f"obu run: {err}", file=sys.stderr)

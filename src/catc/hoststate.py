@@ -263,7 +263,8 @@ class HostEstimator:
                 self.heading = fix.course_deg % 360.0
             else:
                 err = _wrap180(fix.course_deg - ph)
-                dt = min(1.0, max(0.05, t - (self._prev_fix_t or t - 0.1)))
+                prev = t - 0.1 if self._prev_fix_t is None else self._prev_fix_t
+                dt = min(1.0, max(0.05, t - prev))
                 self.heading = (self.heading + self.config.heading_kp * dt * err) % 360.0
                 self.bias -= self.config.heading_ki * dt * err
                 self.bias = max(-5.0, min(5.0, self.bias))
@@ -288,25 +289,27 @@ class HostEstimator:
         return None if self.offset is None else t_gnss - self.offset
 
     def state(self, t: float) -> HostState | None:
-        """The host at local ``t`` (at or after everything fed so far); None before the
-        first fix."""
+        """The host at local ``t``; None before the first fix.  A ``t`` before the
+        newest input (a tick decided after a later frame came) is read off the
+        dead-reckoned path of the last second, corrections included."""
         if self.frame is None or self.offset is None:
             return None
         if t > self.t:
             self._propagate(t)
-        age = t - self.last_fix
+        e, n, heading = self._at(t)
+        age = max(0.0, t - self.last_fix)
         lost = age > self.config.gnss_timeout_s
         if lost and not self.silent:
             self.silent = True
             self.counters["gnss_silent"] += 1
-        lat, lon, _ = self.frame.to_geodetic(self.e, self.n, 0.0)
+        lat, lon, _ = self.frame.to_geodetic(e, n, 0.0)
         c = self.can_state
         speed, _ = self._speed()
         yaw = c.get("yaw_rate_dps")
         return HostState(
             t_gnss=t + self.offset, lat=float(lat), lon=float(lon), elev=self.elev,
             speed=None if speed is None else max(0.0, float(speed)),
-            heading=self.heading,
+            heading=heading,
             yaw_rate=0.0 if yaw is None else float(yaw) - self.bias,
             accel_long=self.accel.get("accel_long_mps2"),
             accel_lat=self.accel.get("accel_lat_mps2"),

@@ -412,8 +412,7 @@ class VehicleHost:
 
     def _tick(self, t_gnss: float) -> None:
         est = self.est
-        local = est.local_time(t_gnss)
-        state = est.state(max(local, est.t if est.t is not None else local))
+        state = est.state(est.local_time(t_gnss))  # the state at T, though inputs came after
         if state is None:
             return
         state = replace(state, t_gnss=t_gnss)  # its secMark that of T, exactly

@@ -49,7 +49,7 @@ class Obu:
                              self.cam.drop)
         self.rule = TickRule(args.collect_ms)
         self.host_arrival = 0.0  # the ticking host frame's arrival (unix s)
-        self.last_frame = time.monotonic()
+        self.last_frame = self.last_rv = time.monotonic()
         self.web: Any = None  # the live view's hub (obu.web.Hub) when --web is on
         self.vehicle: Any = None  # obu.vehicle.VehicleHost with --host-source vehicle
 
@@ -60,6 +60,7 @@ class Obu:
         self.counters[f"frames_{channel}"] += 1
         self.last_frame = time.monotonic()
         if channel == "rv":  # any datagram, decodable or not: the channel is not quiet
+            self.last_rv = self.last_frame
             self.rule.rv_frame(self.last_frame)
         return self.frames.take(channel, data, rx_unix)
 

@@ -166,8 +166,12 @@ async def serve(args: argparse.Namespace) -> dict:
             if args.duration is not None and time.monotonic() - started > args.duration:
                 done = "duration"
                 break
+            # idle: no frame for a while; with the car as the host (whose own frames are
+            # made here), no RV frame and nothing from the car
+            last = obu.last_frame if vehicle is None \
+                else max(obu.last_rv, vehicle.last_input)
             if args.idle_exit is not None and obu.counters["frames"] \
-                    and time.monotonic() - obu.last_frame > args.idle_exit:
+                    and time.monotonic() - last > args.idle_exit:
                 done = "idle"
                 break
             if not inbox and pending is None:

@@ -143,6 +143,8 @@ class VehicleHost:
         self.tasks: list[asyncio.Task] = []
         self.transport: asyncio.DatagramTransport | None = None
         self.fixed = asyncio.Event()  # the first fix came: ticks may start
+        #: when (monotonic) the car last said anything (CAN or GNSS): ``--idle-exit``
+        self.last_input = time.monotonic()
         self.silences = 0
 
     def where(self) -> str:
@@ -223,7 +225,7 @@ class VehicleHost:
         if msg.is_error_frame or msg.is_remote_frame:
             self.counters["can_error_or_remote"] += 1
             return
-        t = time.monotonic()
+        t = self.last_input = time.monotonic()
         c = self.decoder.counters
         before = [c[k] for k in _CAN_BAD]
         address = msg.arbitration_id
@@ -239,7 +241,7 @@ class VehicleHost:
     # ---- GNSS --------------------------------------------------------------------------
     def _nmea(self, data: bytes) -> None:
         """NMEA octets from any source."""
-        t = time.monotonic()
+        t = self.last_input = time.monotonic()
         c = self.nmea.counters
         before = [c[k] for k in _NMEA_BAD]
         fixes = self.nmea.feed(data)
@@ -376,7 +378,7 @@ class VehicleHost:
             delay = min(2 * delay, MAX_BACKOFF_S)
 
     def _gpsd_line(self, line: bytes) -> None:
-        t = time.monotonic()
+        t = self.last_input = time.monotonic()
         try:
             doc = json.loads(line)
         except (ValueError, UnicodeDecodeError):

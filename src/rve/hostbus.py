@@ -46,7 +46,7 @@ from hil.capture import CanLogs, JsonLines, schema
 from hil.errors import write_error
 
 __all__ = ["HOST_CHANNELS", "HostBus", "HostBusPlan", "ReplayClock", "nmea_spec", "outage",
-           "prepare"]
+           "outages", "prepare"]
 
 #: The host CAN bus's channel when none is given: not the RV transport's own default.
 HOST_CHANNELS = {"socketcan": "vcan1", "virtual": "catc-hil-host",
@@ -76,6 +76,20 @@ def outage(text: str) -> tuple[float, float]:
         raise argparse.ArgumentTypeError(
             f"not START:DURATION (s, START >= 0, DURATION > 0): {text!r}")
     return start, duration
+
+
+def outages(given: Any) -> list[tuple[float, float]]:
+    """--gnss-outage's values (strings from the command line or a TOML list, pairs from
+    a caller), checked: ValueError, one line, for a bad one."""
+    out = []
+    for item in given or ():
+        if isinstance(item, (tuple, list)) and len(item) == 2:
+            item = f"{item[0]}:{item[1]}"
+        try:
+            out.append(outage(str(item)))
+        except argparse.ArgumentTypeError as err:
+            raise ValueError(f"--gnss-outage: {err}") from None
+    return out
 
 
 @dataclass
@@ -132,7 +146,7 @@ def prepare(args: argparse.Namespace, the_plan: Plan) -> HostBusPlan:
     else:
         epochs = [e for e in gnss_epochs(
             track, utc_base, noise_m=args.gnss_noise, latency_s=args.gnss_latency / 1000.0,
-            loss=args.gnss_loss / 100.0, outages=args.gnss_outage or (), seed=args.seed,
+            loss=args.gnss_loss / 100.0, outages=outages(args.gnss_outage), seed=args.seed,
             start=start, end=end) if e.t_send <= end + 1e-9]
     return HostBusPlan(frames, epochs, utc_base, recorded)
 

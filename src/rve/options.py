@@ -86,14 +86,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def _add_host_bus_arguments(p: argparse.ArgumentParser) -> None:
     """The flags of ``--host-bus`` (:mod:`rve.hostbus`)."""
-    from rve.hostbus import nmea_spec, outage
+    from rve.hostbus import nmea_spec
 
     g = p.add_argument_group(
         "the host vehicle's own bus (--host-bus)",
-        "The host's CAN frames, encoded through a vehicle profile's DBC, and NMEA 0183 "
-        "from a simulated GNSS receiver, made from the host's trajectory (or replayed "
-        "from the dataset's recording).  With --host-bus the host's state is NOT sent as "
-        "a BSM on the private host channel (--host-to or the host's ISO-TP id): it goes "
+        "The host's CAN frames, encoded through a vehicle profile's DBC, and NMEA 0183\n"
+        "from a simulated GNSS receiver, made from the host's trajectory (or replayed\n"
+        "from the dataset's recording).  With --host-bus the host's state is NOT sent as\n"
+        "a BSM on the private host channel (--host-to or the host's ISO-TP id): it goes\n"
         "to the vehicle side only.")
     g.add_argument("--host-bus", action="store_true", default=None,
                    help="send the host's CAN bus and GNSS instead of its private channel")
@@ -123,5 +123,5 @@ def _add_host_bus_arguments(p: argparse.ArgumentParser) -> None:
                    help="each fix is sent this long after its UTC epoch (default 50)")
     g.add_argument("--gnss-loss", type=percent, metavar="PCT",
                    help="probability that an epoch is lost, %% (default 0)")
-    g.add_argument("--gnss-outage", type=outage, action="append", metavar="START:DURATION",
+    g.add_argument("--gnss-outage", action="append", metavar="START:DURATION",
                    help="no fixes for DURATION s from START s after the start (repeatable)")

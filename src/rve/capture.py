@@ -13,7 +13,9 @@
   :func:`hil.capture.schema.sent`);
 * ``rve.frames.pcapng`` (UDP datagrams with their IP/UDP headers, or with ``--framing
   wsmp`` Ethernet II frames of ethertype 0x88DC as over the air) or ``rve.frames.asc`` and
-  ``rve.frames.log`` (every raw CAN frame, :func:`hil.capture.can_log`).
+  ``rve.frames.log`` (every raw CAN frame, :func:`hil.capture.can_log`);
+* with ``--host-bus``, ``rve.hostbus.log`` and ``rve.gnss.jsonl`` (:mod:`rve.hostbus`),
+  which :meth:`Capture.attach` adds.
 
 Every file is append-only; the replay flushes them at every host tick.  A write that
 fails (a full disk) raises :class:`hil.errors.WriteError` naming the file; the others
@@ -90,6 +92,13 @@ class Capture:
         with open(directory / schema.RVE_CONFIG, "w", encoding="utf-8") as f:
             json.dump(config, f, indent=1, default=str)
         self._truth_pos = {v: 0 for v in the_plan.vehicles}
+        #: more files flushed and closed with these (``--host-bus``'s: :meth:`attach`)
+        self.extra: list[Any] = []
+
+    def attach(self, files: list[Any]) -> None:
+        """Flush ``files`` with the others at every host tick and close them at the end
+        (writers of :mod:`hil.capture.writers`, :class:`hil.capture.CanLogs`)."""
+        self.extra.extend(files)
 
     def sources(self, src: dict[str, Address]) -> None:
         """The sender's local address of each channel (``rv``, ``host``), for the pcapng."""
@@ -157,6 +166,8 @@ class Capture:
             self.pcap.flush()
         if self.canlog is not None:
             self.canlog.flush()
+        for f in self.extra:
+            f.flush()
 
     def write_end(self, exit: str, reason: str, **counts: int) -> None:
         """How the run ended (``rve.end.json``, :func:`hil.capture.schema.end`)."""
@@ -172,8 +183,8 @@ class Capture:
         """Flush and close every file (all of them, even when one fails), then write how
         the run ended; a file that could not be written raises once the end record says
         so (the run's own error, when it had one, stays its reason)."""
-        failure = finish(f for f in (self.schedule, self.truth, self.pcap, self.canlog)
-                         if f is not None)
+        failure = finish(f for f in (self.schedule, self.truth, self.pcap, self.canlog,
+                                     *self.extra) if f is not None)
         if failure is not None and exit != "error":
             exit, reason = schema.failed(failure)
         self.write_end(exit, reason, **counts)

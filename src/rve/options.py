@@ -22,6 +22,10 @@ DEFAULTS = {
     "duration": None, "host": None, "trip": None, "ieee1609": False, "distance": False,
     "can_interface": "virtual", "can_channel": None, "can_fd": False, "progress": True,
     "idm_host": None, "sign": None, "framing": None, "attack": None,
+    "host_bus": False, "host_can_interface": "virtual", "host_can_channel": None,
+    "host_can_fd": False, "radar_can_channel": None, "nmea": None,
+    "vehicle": "toyota-rav4-2017", "dbc": None, "gnss_noise": 0.5, "gnss_latency": 50.0,
+    "gnss_loss": 0.0, "gnss_outage": None,
 }
 
 
@@ -75,5 +79,49 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "message is labelled in rve.schedule.jsonl (catc.attacks has the "
                         "parameters)")
     add_can_arguments(p)
+    _add_host_bus_arguments(p)
     p.add_argument("--no-progress", dest="progress", action="store_false", default=None,
                    help="no progress line on stderr")
+
+
+def _add_host_bus_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of ``--host-bus`` (:mod:`rve.hostbus`)."""
+    from rve.hostbus import nmea_spec
+
+    g = p.add_argument_group(
+        "the host vehicle's own bus (--host-bus)",
+        "The host's CAN frames, encoded through a vehicle profile's DBC, and NMEA 0183\n"
+        "from a simulated GNSS receiver, made from the host's trajectory (or replayed\n"
+        "from the dataset's recording).  With --host-bus the host's state is NOT sent as\n"
+        "a BSM on the private host channel (--host-to or the host's ISO-TP id): it goes\n"
+        "to the vehicle side only.")
+    g.add_argument("--host-bus", action="store_true", default=None,
+                   help="send the host's CAN bus and GNSS instead of its private channel")
+    g.add_argument("--host-can-interface", choices=("socketcan", "virtual", "udp_multicast"),
+                   help="python-can interface of the host CAN bus (default virtual)")
+    g.add_argument("--host-can-channel", metavar="NAME",
+                   help="host CAN channel (default vcan1, catc-hil-host or 239.74.163.3 by "
+                        "interface)")
+    g.add_argument("--host-can-fd", action="store_true", default=None,
+                   help="send the host's frames as CAN FD frames")
+    g.add_argument("--radar-can-channel", metavar="NAME",
+                   help="a recorded dataset's bus 1 (the radar) goes here (default: not "
+                        "sent)")
+    g.add_argument("--nmea", type=nmea_spec, metavar="SPEC",
+                   help="where the NMEA goes: udp:HOST:PORT (a datagram per epoch), "
+                        "pty:PATH (PATH links to a pseudo-terminal, e.g. for gpsd) or "
+                        "file:PATH (appended); default nowhere")
+    g.add_argument("--vehicle", metavar="PROFILE",
+                   help="vehicle profile: a shipped name or a JSON file (default "
+                        "toyota-rav4-2017)")
+    g.add_argument("--dbc", metavar="PATH", help="encode through this DBC instead of the "
+                   "profile's own")
+    g.add_argument("--gnss-noise", type=non_negative, metavar="M",
+                   help="standard deviation of the position error, m (default 0.5; "
+                        "Gauss-Markov, 10 s correlation time)")
+    g.add_argument("--gnss-latency", type=non_negative, metavar="MS",
+                   help="each fix is sent this long after its UTC epoch (default 50)")
+    g.add_argument("--gnss-loss", type=percent, metavar="PCT",
+                   help="probability that an epoch is lost, %% (default 0)")
+    g.add_argument("--gnss-outage", action="append", metavar="START:DURATION",
+                   help="no fixes for DURATION s from START s after the start (repeatable)")

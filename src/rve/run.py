@@ -25,6 +25,13 @@ unreachable address or bus or a capture directory that cannot be made or written
 capture file that cannot be written during the replay (a full disk) ends it with one line
 naming the file and exit status 1; every file keeps what was written before, and
 ``rve.end.json`` names the error.  SIGINT and SIGTERM stop the replay, flush and exit 0.
+
+``--host-bus`` (:mod:`rve.hostbus`): the host vehicle's own CAN bus (its frames encoded
+through a vehicle profile's DBC, each message at its rate) and a GNSS receiver's NMEA
+0183 at 10 Hz (seeded noise, latency, losses, outages), made from the host's trajectory
+and sent beside the RVs' frames on the same clock.  The host's state then does NOT go
+out as a BSM on the private host channel.  The capture gets ``rve.hostbus.log`` and
+``rve.gnss.jsonl`` too.
 """
 
 
@@ -34,6 +41,7 @@ import argparse
 import asyncio
 import contextlib
 import json
+import math
 import signal
 import sys
 import time
@@ -49,6 +57,7 @@ from hil.pacing import Pacer
 from rve.attacking import Attacking
 from rve.capture import Capture
 from rve.framing import encode_event, framing_of
+from rve.hostbus import HostBus, HostBusPlan, ReplayClock, prepare
 from rve.options import DEFAULTS, add_arguments
 from rve.progress import Progress
 from rve.signing import Signer, make_signer
@@ -65,20 +74,51 @@ async def _open_sender(args: argparse.Namespace, on_frame):
                              fd=bool(args.can_fd), on_frame=on_frame)
 
 
+async def _finish_host(task: asyncio.Task, stop: asyncio.Event, clock: ReplayClock) -> None:
+    """Let the host bus send the rest of what is due by the replay's end (with --asap: at
+    once), unless the replay was stopped; raise what ended it."""
+    if not stop.is_set():
+        clock.advance(math.inf)
+        waiter = asyncio.ensure_future(stop.wait())
+        await asyncio.wait({task, waiter}, return_when=asyncio.FIRST_COMPLETED)
+        waiter.cancel()
+    if not task.done():
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+    elif not task.cancelled() and task.exception() is not None:
+        raise task.exception()
+
+
 async def replay(args: argparse.Namespace, the_plan: Plan,
                  lateness: list[float] | None = None,
-                 signer: Signer | None = None) -> dict[str, int]:
+                 signer: Signer | None = None,
+                 host_plan: HostBusPlan | None = None) -> dict[str, int]:
     """Send the plan in real time (or as fast as possible); returns the counters.
     ``lateness`` collects every sent frame's send time minus its deadline (s); ``signer``
-    signs the RVs' frames (made from ``args.sign`` when not given)."""
+    signs the RVs' frames (made from ``args.sign`` when not given); with ``--host-bus``
+    ``host_plan`` is what the host bus sends (made from ``args`` when not given)."""
+    host_bus = bool(getattr(args, "host_bus", False))
+    if host_bus and host_plan is None:
+        host_plan = prepare(args, the_plan)
     framing = framing_of(args)
     signer = signer or make_signer(args, the_plan)
     attacking = Attacking(args, the_plan, signer, framing) if args.attack else None
     attacks = attacking.attacks if attacking else None
     cap = Capture(Path(args.capture), the_plan, args) if args.capture else None
     on_frame = cap.canlog.on_message_received if cap is not None and cap.canlog else None
+    hostbus = None
     try:
         sender = await _open_sender(args, on_frame)
+        if host_bus:
+            hostbus = HostBus(args, host_plan, Path(args.capture) if cap else None)
+            try:
+                hostbus.open()
+            except BaseException:
+                await sender.aclose()
+                raise
+            if cap is not None:
+                cap.attach(hostbus.files())
     except BaseException as err:
         if cap is not None:
             with contextlib.suppress(OSError):  # err, not a capture file, ends the run
@@ -95,6 +135,12 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
     tids = [temp_id(v) for v in the_plan.vehicles]
     t0 = float(events["time"][0]) if len(events) else 0.0
     pacer = Pacer(t0, None if args.asap else args.speed)
+    clock = ReplayClock(pacer) if hostbus is not None else None
+    host_task = None
+    if hostbus is not None:
+        host_task = asyncio.create_task(hostbus.run(clock))
+        host_task.add_done_callback(
+            lambda task: stop.set() if not task.cancelled() and task.exception() else None)
     progress = Progress(args.progress, t0, float(events["time"][-1]) if len(events) else t0)
     if cap is not None:  # where each channel's datagrams come from: the sockets' own ports
         src = dict(getattr(sender, "local", {}))
@@ -113,10 +159,13 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
             batch = events[i:j]
             # Encode before the deadline, send at it, write the capture after the sends.
             gen_unix = time.time() + max(0.0, pacer.deadline(due) - pacer.clock())
-            encoded = [encode_event(ev, the_plan, framing, signer, gen_unix, attacks)
+            encoded = [(None, None) if host_bus and ev["host"] else
+                       encode_event(ev, the_plan, framing, signer, gen_unix, attacks)
                        for ev in batch]
             frames = [frame for frame, _ in encoded]
             extra = attacking.frames(batch, frames, gen_unix) if attacking else []
+            if clock is not None:
+                clock.advance(due)
             await pacer.wait(due)
             deadline = pacer.deadline(due)
 
@@ -139,6 +188,8 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
                 await sender.send(attack_frame)
                 extra_at.append(stamp())
             for ev, (frame, label), when in zip(batch, encoded, sent_at, strict=True):
+                if host_bus and ev["host"]:  # not sent: the host bus carries the host
+                    continue
                 _account(ev, frame, when, counts, lateness)
                 if cap is not None:
                     v = int(ev["vehicle"])
@@ -152,6 +203,8 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
                 cap.write_truth(the_plan, due)
                 cap.flush()
             i = j
+        if host_task is not None:
+            await _finish_host(host_task, stop, clock)
         ending = ("signal", stopped_by[0]) if stopped_by else ("clean", "replayed")
     except BaseException as err:
         ending, raised = schema.failed(err), True
@@ -159,13 +212,21 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
     finally:
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.remove_signal_handler(sig)
+        if host_task is not None and not host_task.done():
+            host_task.cancel()
+            with contextlib.suppress(BaseException):
+                await host_task
+        if hostbus is not None:
+            hostbus.close()
+            counts.update(hostbus.counts)
         await sender.aclose()
         last = float(events["time"][min(i, len(events) - 1)]) if len(events) else 0.0
         progress.update(last, counts["sent"], counts["dropped"], 0.0, final=True)
         if cap is not None:
             try:  # every file flushed and closed, even after a failed write
                 cap.end(*ending, sent=counts["sent"], dropped=counts["dropped"],
-                        host_frames=counts["host"])
+                        host_frames=counts["host"],
+                        **(dict(hostbus.counts) if hostbus is not None else {}))
             except OSError:
                 if not raised:
                     raise
@@ -210,11 +271,12 @@ def run(args: argparse.Namespace) -> int:
         signer = make_signer(args, the_plan)
         if args.attack:
             Attacking(args, the_plan, signer, framing_of(args))  # one line if it cannot be
-    except ValueError as err:  # hil.pki.PkiError included
+        host_plan = prepare(args, the_plan) if args.host_bus else None
+    except ValueError as err:  # hil.pki.PkiError, hil.vehicle.ProfileError included
         print(f"rve run: {err}", file=sys.stderr)
         return 2
     try:
-        counts = asyncio.run(replay(args, the_plan, signer=signer))
+        counts = asyncio.run(replay(args, the_plan, signer=signer, host_plan=host_plan))
     except WriteError as err:  # a capture file, during the run
         print(f"rve run: {err}", file=sys.stderr)
         return 1
@@ -228,6 +290,9 @@ def run(args: argparse.Namespace) -> int:
                       "host_frames": counts["host"], "interrupted": bool(counts["interrupted"]),
                       "vehicles": len(the_plan.vehicles) - 1, "host": the_plan.host_id,
                       **{k: counts[k] for k in ("signed", "with_certificate",
-                                                 "attack_frames") if k in counts}}),
+                                                 "attack_frames", "host_can_frames",
+                                                 "host_can_errors", "nmea_epochs",
+                                                 "gnss_dropped", "nmea_full")
+                         if k in counts}}),
           flush=True)
     return 0

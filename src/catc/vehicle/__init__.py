@@ -5,7 +5,9 @@ to enable applications to interface to the CAN bus, GPS receiver, and wireless")
 it reads is named by a *vehicle profile* (:class:`VehicleProfile`): which message and
 signals of the car's DBC feed which host-state field, with the unit conversion and the
 sign convention (J2735: yaw rate positive clockwise, speeds in m/s), and the frame
-checksum rule.  Adding a car is adding a profile (a JSON file and a DBC), not code.
+checksum rule, and how often the car sends each message (``rates_hz``, which
+:mod:`catc.vehicle.encode` follows when it makes a host's bus).  Adding a car is adding a
+profile (a JSON file and a DBC), not code.
 
 :class:`CanDecoder` decodes frames with a :mod:`cantools` database (the profile's own
 DBC, or any full DBC a user points at): each frame is checked (known id, length, the
@@ -27,7 +29,8 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-__all__ = ["CHECKSUMS", "CanDecoder", "FieldRule", "VehicleProfile", "toyota_checksum"]
+__all__ = ["CHECKSUMS", "DEFAULT_RATE_HZ", "CanDecoder", "FieldRule", "VehicleProfile",
+           "toyota_checksum"]
 
 
 def toyota_checksum(address: int, data: bytes) -> int:
@@ -37,6 +40,9 @@ def toyota_checksum(address: int, data: bytes) -> int:
 
 #: Checksum rule name -> ``rule(address, data) -> the expected last byte``.
 CHECKSUMS: dict[str, Callable[[int, bytes], int]] = {"toyota": toyota_checksum}
+
+#: How often a message is sent when the profile does not say (Hz).
+DEFAULT_RATE_HZ = 10.0
 
 #: How a field combines the values of its signals.
 _COMBINE = {"first": lambda v: v[0], "mean": lambda v: sum(v) / len(v), "sum": sum}
@@ -68,17 +74,32 @@ class FieldRule:
 
 @dataclass(frozen=True)
 class VehicleProfile:
-    """A car: its name, its checksum rule, and the fields read from its CAN bus."""
+    """A car: its name, its checksum rule, the fields read from its CAN bus, and how
+    often the car sends each message (``rates_hz``, message name -> Hz; a message not
+    named there is sent at :data:`DEFAULT_RATE_HZ`)."""
 
     name: str
     checksum: str
     fields: Mapping[str, FieldRule]
     description: str = ""
+    rates_hz: Mapping[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if self.checksum not in CHECKSUMS:
             raise ValueError(f"profile {self.name!r}: checksum {self.checksum!r} is not one "
                              f"of {', '.join(CHECKSUMS)}")
+        for message, hz in self.rates_hz.items():
+            if not (isinstance(hz, (int, float)) and math.isfinite(hz) and hz > 0):
+                raise ValueError(f"profile {self.name!r}: rate of {message} must be a "
+                                 f"number of Hz above 0, got {hz!r}")
+
+    def rate_hz(self, message: str) -> float:
+        """How often the car sends ``message`` (Hz)."""
+        return float(self.rates_hz.get(message, DEFAULT_RATE_HZ))
+
+    def messages(self) -> list[str]:
+        """The messages the profile reads, in the order its fields name them."""
+        return list(dict.fromkeys(rule.message for rule in self.fields.values()))
 
     @classmethod
     def from_dict(cls, doc: Mapping[str, Any]) -> VehicleProfile:
@@ -90,8 +111,12 @@ class VehicleProfile:
                                       offset=float(f.get("offset", 0.0)),
                                       unit=f.get("unit", ""), why=f.get("why", ""))
                       for name, f in doc["fields"].items()}
+            rates = doc.get("rates_hz", {})
+            if not isinstance(rates, Mapping):
+                raise TypeError("rates_hz: not a mapping")
             return cls(name=doc["name"], checksum=doc.get("checksum", "toyota"),
-                       fields=fields, description=doc.get("description", ""))
+                       fields=fields, description=doc.get("description", ""),
+                       rates_hz=dict(rates))
         except (KeyError, TypeError, AttributeError) as err:
             raise ValueError(f"vehicle profile: missing or malformed {err}") from None
 
@@ -109,6 +134,12 @@ class VehicleProfile:
                 if s not in have:
                     raise ValueError(f"profile {self.name!r}: field {name!r}: message "
                                      f"{rule.message} has no signal {s!r}")
+        for message in self.rates_hz:
+            try:
+                db.get_message_by_name(message)
+            except KeyError:
+                raise ValueError(f"profile {self.name!r}: rates_hz: no message "
+                                 f"{message!r} in the DBC") from None
 
 
 @dataclass

@@ -24,6 +24,10 @@ file                     writer  one record per ...
 ``rve.frames.asc/.log``  RVE     CAN frame sent (ASC and candump log)
 ``rve.end.json``         RVE     run: how it ended, written as it ends (:func:`end`); none
                                  when the RVE was killed
+``rve.hostbus.log``      RVE     CAN frame of the host's own bus, with ``--host-bus``
+                                 (candump log; :mod:`rve.hostbus`)
+``rve.gnss.jsonl``       RVE     GNSS epoch, with ``--host-bus``: sent or dropped, the true
+                                 position (:mod:`rve.hostbus`)
 ``obu.config.json``      OBU     run: settings, versions, ENU origin (rewritten once it is known;
                                  :func:`obu_config`)
 ``obu.end.json``         OBU     run: how it ended (:func:`end`); none when it was killed
@@ -75,6 +79,8 @@ __all__ = [
     "RVE_CAN_STEM",
     "RVE_CONFIG",
     "RVE_END",
+    "RVE_GNSS",
+    "RVE_HOSTBUS_LOG",
     "RVE_PCAPNG",
     "RVE_SCHEDULE",
     "RVE_TRUTH",
@@ -108,6 +114,10 @@ RVE_PCAPNG = "rve.frames.pcapng"
 #: ``rve.frames.asc`` and ``rve.frames.log``
 RVE_CAN_STEM = "rve.frames"
 RVE_END = "rve.end.json"
+#: ``rve run --host-bus``: every CAN frame of the host's own bus (candump log), and every
+#: GNSS epoch (sent or dropped, with the true position)
+RVE_HOSTBUS_LOG = "rve.hostbus.log"
+RVE_GNSS = "rve.gnss.jsonl"
 OBU_CONFIG = "obu.config.json"
 OBU_END = "obu.end.json"
 OBU_COUNTERS = "obu.counters.json"

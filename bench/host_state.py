@@ -38,6 +38,8 @@ from catc.vehicle import CanDecoder
 from hil import comma2k19
 from hil.vehicle import comma2k19_can, load_profile
 
+#: The u-blox's sentences were logged 0.20 s after their UTC stamps (tests/test_comma2k19.py).
+GNSS_DELAY_S = 0.2
 DEFAULT = Path(__file__).resolve().parents[2] / "shared" / "data" / "comma2k19-example"
 
 
@@ -48,7 +50,7 @@ def run(segment: Path, latency: float | None = None,
     decoder = CanDecoder(profile, db)
     frames = comma2k19_can(segment, {0: db})
     fix_t, fixes = comma2k19.ublox_fixes(segment)
-    est = HostEstimator(EstimatorConfig(latency_s=latency))
+    est = HostEstimator(EstimatorConfig(gnss_delay_s=GNSS_DELAY_S, latency_s=latency))
     t0 = float(fix_t[0])
     events = [(float(r["t"]), 0, i) for i, r in enumerate(frames)] if use_can else []
     events += [(float(t), 1, i) for i, t in enumerate(fix_t)
@@ -106,6 +108,7 @@ def _errors(segment: Path, ticks: list, est: HostEstimator, fix_t: np.ndarray, f
         "raw_fixes_at_logged_time_m": _stats(raw(0.0)),
         "raw_fixes_minus_latency_m": _stats(raw(est.latency)),
         "latency_s": est.latency, "latency_fitted": est.latency_fitted,
+        "latency_fit": est.latency_fit,
         "yaw_bias_dps": est.bias, "speed_scale": est.scale,
         "counters": dict(est.counters),
     }
@@ -144,7 +147,12 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(rows, indent=1))
         return 0
     main_row = rows["CAN + GNSS (the OBU)"]
-    how = "measured" if main_row["latency_fitted"] else "given"
+    fit = main_row["latency_fit"]
+    how = ("measured" if main_row["latency_fitted"] else
+           "given" if args.latency is not None else
+           "the prior; the fit, " + ("none" if fit is None else
+                                     f"{fit[0]:.3f} s with standard error {fit[1]:.3f} s")
+           + ", is not sure enough")
     print(f"comma2k19 minute, {main_row['ticks']} ticks at 10 Hz; latency "
           f"{main_row['latency_s']:.2f} s ({how}),"
           f" yaw-rate bias {main_row['yaw_bias_dps']:+.3f} deg/s, speed scale "

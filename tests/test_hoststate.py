@@ -36,7 +36,11 @@ def test_position_speed_and_yaw_rate_against_comma_s_pose_at_every_tick(minute):
     assert minute["raw_fixes_at_logged_time_m"]["p95"] > 1.5
     assert minute["position_m"]["p95"] <= 1.0
     assert minute["position_m"]["p95"] < 0.6 * minute["raw_fixes_at_logged_time_m"]["p95"]
-    assert minute["latency_fitted"] and 0.02 <= minute["latency_s"] <= 0.15
+    # the latency fit (0.05 s, standard error 0.014 s) is not sure enough to replace the
+    # 0.1 s prior on one minute; either is far from the 0.2 s the fixes' stamps say
+    lag, se = minute["latency_fit"]
+    assert 0.0 < lag < 0.15 and se < 0.03
+    assert not minute["latency_fitted"] and minute["latency_s"] == 0.1
     assert minute["speed_mps"]["p95"] <= 0.1
     assert minute["yaw_rate_dps"]["max"] <= 1.0
     assert 0.2 <= minute["yaw_bias_dps"] <= 0.6  # KINEMATICS reads ~0.45 deg/s high

@@ -24,7 +24,8 @@ DEFAULTS = {
     "mbd": False, "web": None, "host_id": None, "signatures": "strict",
     "capture_max_mb": None, "host_source": "channel", "vehicle": "toyota-rav4-2017",
     "dbc": None, "vehicle_can_interface": "virtual", "vehicle_can_channel": None,
-    "vehicle_can_fd": False, "gnss": None, "gnss_delay": 0.0, "gnss_latency": "auto",
+    "vehicle_can_fd": False, "gnss": None, "gnss_delay": 0.1, "gnss_latency": "auto",
+    "time_scale": 1.0,
 }
 
 
@@ -167,11 +168,18 @@ def add_vehicle_arguments(p: argparse.ArgumentParser) -> None:
                         "(default toyota-rav4-2017)")
     p.add_argument("--dbc", metavar="PATH", help="a full DBC of the car, read instead of "
                    "the profile's own")
-    p.add_argument("--vehicle-can-interface", choices=("socketcan", "virtual", "udp_multicast"),
-                   help="python-can interface of the car's bus (default virtual)")
+    p.add_argument("--vehicle-can-interface",
+                   choices=("socketcan", "virtual", "udp_multicast", "slcan"),
+                   help="python-can interface of the car's bus (default virtual), or slcan: "
+                        "a serial USB-CAN adapter (Lawicel ASCII: CANable, USBtin) at the "
+                        "channel's PATH[@BAUD], or rve's on a pty")
     p.add_argument("--vehicle-can-channel", metavar="NAME",
                    help="the car's CAN channel, e.g. can0 (default per interface: can0, "
                         "catc-vehicle, 239.74.163.3)")
+    p.add_argument("--time-scale", type=positive, metavar="N",
+                   help="with --host-source vehicle: the car's time runs N times this "
+                        "process's (a bench replaying the vehicle side at rve run --speed "
+                        "N); 1 on a real car (default)")
     p.add_argument("--vehicle-can-fd", action="store_true", default=None,
                    help="the car's bus is CAN FD")
     p.add_argument("--gnss", type=gnss_spec, metavar="SPEC",
@@ -180,7 +188,8 @@ def add_vehicle_arguments(p: argparse.ArgumentParser) -> None:
                         "gpsd[:HOST[:PORT]] (gpsd's JSON; default 127.0.0.1:2947)")
     p.add_argument("--gnss-delay", type=gnss_delay, metavar="S",
                    help="how long after its UTC stamp a fix's sentences arrive, for the "
-                        "clock (default 0)")
+                        "clock (default 0.1: a typical receiver's, and rve run "
+                        "--host-bus's; the comma2k19 u-blox's is 0.2)")
     p.add_argument("--gnss-latency", type=latency, metavar="auto|S",
                    help="how old a fix's position is when it arrives: auto (default: "
                         "measured against the wheel speed) or S seconds (0..1)")

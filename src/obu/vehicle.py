@@ -43,7 +43,7 @@ from catc.errors import EncodeError
 from catc.gnss import Fix, NmeaStream
 from catc.hoststate import EstimatorConfig, HostEstimator, HostState
 from catc.j2735 import encode_frame
-from catc.vehicle import CanDecoder
+from catc.vehicle import CanDecoder, slcan
 from hil.transport import TransportError, os_reason
 from hil.vehicle import load_profile
 from obu.options import GnssSpec
@@ -58,7 +58,24 @@ _PER_S = 10
 MAX_BACKOFF_S = 5.0
 #: The car's bus when no ``--vehicle-can-channel`` is given (not the RV transport's).
 DEFAULT_CHANNELS = {"socketcan": "can0", "virtual": "catc-vehicle",
-                    "udp_multicast": "239.74.163.3"}
+                    "udp_multicast": "239.74.163.3", "slcan": "/dev/ttyACM0"}
+
+
+def serial_spec(channel: str) -> GnssSpec:
+    """A serial CAN adapter's ``PATH[@BAUD]`` (``--vehicle-can-channel``)."""
+    path, at, baud = channel.rpartition("@") if "@" in channel else (channel, "", "")
+    return GnssSpec("serial", path=path, baud=int(baud) if at and baud.isdigit() else None)
+
+
+class _Frame:
+    """A CAN frame read from a serial adapter, shaped as python-can's Message for
+    :meth:`VehicleHost._on_can`."""
+
+    __slots__ = ("arbitration_id", "data", "is_fd")
+    is_error_frame = is_remote_frame = False
+
+    def __init__(self, arbitration_id: int, data: bytes, is_fd: bool) -> None:
+        self.arbitration_id, self.data, self.is_fd = arbitration_id, data, is_fd
 _WATCH = b'?WATCH={"enable":true,"json":true};\n'
 #: The counters of a dropped CAN frame and NMEA line, with what the log line says.
 _CAN_BAD = {"can_bad_checksum": "bad checksum on id {}", "can_unknown_id": "unknown id {}",
@@ -128,9 +145,10 @@ class VehicleHost:
             fid = db.get_message_by_name(rule.message).frame_id
             self.fields.setdefault(fid, []).append(name)
         self.nmea = NmeaStream()
+        self.slcan = slcan.SlcanStream()
         lat = getattr(args, "gnss_latency", "auto")
         self.est = HostEstimator(EstimatorConfig(
-            gnss_delay_s=float(getattr(args, "gnss_delay", 0.0) or 0.0),
+            gnss_delay_s=float(getattr(args, "gnss_delay", 0.1)),
             latency_s=None if lat in (None, "auto") else float(lat)))
         self.temp_id = (args.host_id if args.host_id is not None
                         else zlib.crc32(profile.name.encode()))
@@ -145,7 +163,14 @@ class VehicleHost:
         self.fixed = asyncio.Event()  # the first fix came: ticks may start
         #: when (monotonic) the car last said anything (CAN or GNSS): ``--idle-exit``
         self.last_input = time.monotonic()
+        #: the car's seconds per second of this process (``--time-scale``: 1 on a car,
+        #: the RVE's ``--speed`` on the bench)
+        self.scale = float(getattr(args, "time_scale", 1.0) or 1.0)
         self.silences = 0
+
+    def clock(self) -> float:
+        """The local clock the estimator runs on: monotonic seconds times the scale."""
+        return time.monotonic() * self.scale
 
     def where(self) -> str:
         """The car's bus and the GNSS source, for the ready line."""
@@ -162,15 +187,32 @@ class VehicleHost:
 
         a, loop = self.args, asyncio.get_running_loop()
         channel = a.vehicle_can_channel or DEFAULT_CHANNELS.get(a.vehicle_can_interface)
+        slcan = a.vehicle_can_interface == "slcan"
+        if slcan:  # a serial USB-CAN adapter (or rve's on a pty): read here, in chunks
+            tty_spec = serial_spec(channel)
+            fd = None
+            if os.path.exists(tty_spec.path):
+                fd = self._open_serial(tty_spec, "CAN serial")
+                self._adapter_open(fd)
+            else:  # not plugged in yet (or rve has not made its pty): wait for it
+                self.log("can_serial", f"vehicle CAN: no adapter at {tty_spec.path} yet: "
+                                       "waiting for it")
+        else:
+            try:
+                self.bus = can.Bus(interface=a.vehicle_can_interface, channel=channel,
+                                   fd=bool(a.vehicle_can_fd))
+            except (can.CanError, OSError, ValueError, ImportError,
+                    NotImplementedError) as exc:
+                raise TransportError(f"cannot open the vehicle's CAN bus "
+                                     f"{a.vehicle_can_interface}:{channel}: "
+                                     f"{os_reason(exc)}") from exc
         try:
-            self.bus = can.Bus(interface=a.vehicle_can_interface, channel=channel,
-                               fd=bool(a.vehicle_can_fd))
-        except (can.CanError, OSError, ValueError, ImportError, NotImplementedError) as exc:
-            raise TransportError(f"cannot open the vehicle's CAN bus "
-                                 f"{a.vehicle_can_interface}:{channel}: "
-                                 f"{os_reason(exc)}") from exc
-        try:
-            self.notifier = can.Notifier(self.bus, [self._on_can], timeout=0.05, loop=loop)
+            if slcan:
+                self.tasks.append(asyncio.create_task(
+                    self._serial(tty_spec, fd, self._slcan_bytes, "can")))
+            else:
+                self.notifier = can.Notifier(self.bus, [self._on_can], timeout=0.05,
+                                             loop=loop)
             spec = self.spec
             if spec.kind == "udp":
                 await self._open_udp(spec)
@@ -215,7 +257,7 @@ class VehicleHost:
         (``gnss_``, ``can_updates``) and this object's own (``vehicle_``, ``gnss_``)."""
         out: dict[str, int] = {}
         for c in (self.decoder.counters, self.nmea.counters, self.est.counters,
-                  self.counters):
+                  self.slcan.counters, self.counters):
             out.update(c)
         return out
 
@@ -225,7 +267,8 @@ class VehicleHost:
         if msg.is_error_frame or msg.is_remote_frame:
             self.counters["can_error_or_remote"] += 1
             return
-        t = self.last_input = time.monotonic()
+        self.last_input = time.monotonic()
+        t = self.clock()
         c = self.decoder.counters
         before = [c[k] for k in _CAN_BAD]
         address = msg.arbitration_id
@@ -238,10 +281,26 @@ class VehicleHost:
                 self.log(key, f"vehicle CAN: {what.format(f'0x{address:03X}')}: "
                                  "frame dropped")
 
+    def _adapter_open(self, fd: int) -> None:
+        """Open a serial CAN adapter: close, 500 kbit/s, open (slcan's ``C``, ``S6``,
+        ``O``); a pty played by rve ignores them."""
+        with contextlib.suppress(OSError):
+            os.write(fd, slcan.OPEN)
+
+    def _slcan_bytes(self, data: bytes) -> None:
+        """slcan octets from the car's adapter: each frame to :meth:`_on_can`."""
+        before = self.slcan.counters["slcan_bad"]
+        for address, payload, fd in self.slcan.feed(data):
+            self._on_can(_Frame(address, payload, fd))
+        if self.slcan.counters["slcan_bad"] != before:
+            self.log("slcan_bad", "vehicle CAN: a serial line that is no slcan frame: "
+                                  "dropped")
+
     # ---- GNSS --------------------------------------------------------------------------
     def _nmea(self, data: bytes) -> None:
         """NMEA octets from any source."""
-        t = self.last_input = time.monotonic()
+        self.last_input = time.monotonic()
+        t = self.clock()
         c = self.nmea.counters
         before = [c[k] for k in _NMEA_BAD]
         fixes = self.nmea.feed(data)
@@ -274,7 +333,7 @@ class VehicleHost:
             raise TransportError(f"cannot bind GNSS udp {spec.host}:{spec.port}: "
                                  f"{os_reason(exc)}") from exc
 
-    def _open_serial(self, spec: GnssSpec) -> int:
+    def _open_serial(self, spec: GnssSpec, what: str = "GNSS serial") -> int:
         """The serial device or pty, non-blocking, raw, at its baud rate."""
         import termios
         import tty
@@ -282,7 +341,7 @@ class VehicleHost:
         try:
             fd = os.open(spec.path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
         except OSError as exc:
-            raise TransportError(f"cannot open GNSS serial {spec.path}: "
+            raise TransportError(f"cannot open {what} {spec.path}: "
                                  f"{os_reason(exc)}") from exc
         with contextlib.suppress(termios.error, OSError):  # a FIFO or a file: no tty
             tty.setraw(fd, termios.TCSANOW)
@@ -294,18 +353,24 @@ class VehicleHost:
             termios.tcsetattr(fd, termios.TCSANOW, attrs)
         return fd
 
-    async def _serial(self, spec: GnssSpec, fd: int | None) -> None:
+    async def _serial(self, spec: GnssSpec, fd: int | None,
+                      sink: Callable[[bytes], None] | None = None,
+                      what: str = "gnss") -> None:
         """Read the serial line until it ends (EOF, EIO: a pty's other side closed),
-        then reopen it with a bounded backoff."""
+        then reopen it with a bounded backoff; its octets go to ``sink`` (the NMEA
+        reader, or the slcan one for ``what`` ``can``)."""
         loop = asyncio.get_running_loop()
-        delay = 0.5
+        sink = sink or self._nmea
+        delay = 0.1 if what == "can" else 0.5
         while True:
             if fd is None:
                 try:
-                    fd = self._open_serial(spec)
+                    fd = self._open_serial(spec, f"{what.upper()} serial")
+                    if what == "can":
+                        self._adapter_open(fd)
                 except TransportError as err:
-                    self.counters["gnss_serial_open_failed"] += 1
-                    self.log("gnss_serial", f"GNSS {err}: retrying in {delay:.1f} s")
+                    self.counters[f"{what}_serial_open_failed"] += 1
+                    self.log(f"{what}_serial", f"{err}: retrying in {delay:.1f} s")
                     await asyncio.sleep(delay)
                     delay = min(2 * delay, MAX_BACKOFF_S)
                     continue
@@ -321,7 +386,7 @@ class VehicleHost:
                 else:
                     why = "end of file"
                 if data:
-                    self._nmea(data)
+                    sink(data)
                 elif not ended.done():
                     loop.remove_reader(fd)
                     ended.set_result(why)
@@ -329,13 +394,14 @@ class VehicleHost:
             loop.add_reader(fd, readable)
             try:
                 why = await ended
-                delay = 0.5
+                delay = 0.1 if what == "can" else 0.5
             finally:
                 loop.remove_reader(fd)
                 os.close(fd)
                 fd = None
-            self.counters["gnss_serial_lost"] += 1
-            self.log("gnss_serial", f"GNSS serial {spec.path} lost ({why}): reopening")
+            self.counters[f"{what}_serial_lost"] += 1
+            self.log(f"{what}_serial", f"{what.upper()} serial {spec.path} lost ({why}): "
+                                       "reopening")
             await asyncio.sleep(delay)
 
     async def _gpsd(self, spec: GnssSpec) -> None:
@@ -378,7 +444,8 @@ class VehicleHost:
             delay = min(2 * delay, MAX_BACKOFF_S)
 
     def _gpsd_line(self, line: bytes) -> None:
-        t = self.last_input = time.monotonic()
+        self.last_input = time.monotonic()
+        t = self.clock()
         try:
             doc = json.loads(line)
         except (ValueError, UnicodeDecodeError):
@@ -397,16 +464,16 @@ class VehicleHost:
         est = self.est
         k = None  # the next tick's number (its GNSS time * 10)
         while True:
-            now = time.monotonic()
+            now = self.clock()
             g = est.gnss_time(now) * _PER_S
-            if k is None or k > g + 10:  # the first, or GNSS time went back a second
-                k = math.ceil(g - 1e-4)
+            if k is None or k > g + 10:  # the first: the first fix's own epoch; or
+                k = math.ceil(est.last_stamp * _PER_S - 1e-4)  # GNSS time went back
             wait = est.local_time(k / _PER_S) - now
             if wait > 0.0:  # re-read the clock at least every 50 ms: a fix may move it
-                await asyncio.sleep(min(wait, 0.05))
+                await asyncio.sleep(min(wait / self.scale, 0.05))
                 continue
-            newest = math.floor(g + 1e-4)  # a whole tick late: the newest one only
-            if newest > k:
+            newest = math.floor(g + 1e-4)  # over a whole tick late: the newest only
+            if newest > k + 1:
                 self.counters["vehicle_ticks_skipped"] += newest - k
                 k = newest
             self._tick(k / _PER_S)

@@ -10,12 +10,14 @@ is replayed as it was instead: bus 0 onto the host CAN bus, bus 1 onto
 ``--radar-can-channel`` when one is given (else not sent).
 
 :class:`HostBus` opens the host CAN bus with python-can (``--host-can-interface``,
-``--host-can-channel``, ``--host-can-fd``) and the NMEA sink (``--nmea``): ``udp:HOST:PORT``
-(one datagram per epoch with all its sentences), ``pty:PATH`` (a pseudo-terminal whose
-slave PATH links to, for gpsd or an OBU to open; the link is removed at the end) or
-``file:PATH`` (appended).  :meth:`HostBus.run` runs beside the replay loop of
-:mod:`rve.run` on the same clock (its :class:`hil.pacing.Pacer`: the same start, speed and
-``--asap``), sending each frame and epoch at its time, and stops with the replay.
+``--host-can-channel``, ``--host-can-fd``; or ``slcan``: it plays a serial USB-CAN adapter
+on a pty whose slave the channel links to, :class:`_SlcanPty`) and the NMEA sink
+(``--nmea``): ``udp:HOST:PORT`` (one datagram per epoch with all its sentences),
+``pty:PATH`` (a pseudo-terminal whose slave PATH links to, for gpsd or an OBU to open; the
+link is removed at the end) or ``file:PATH`` (appended).  :meth:`HostBus.run` runs beside
+the replay loop of :mod:`rve.run` on the same clock (its :class:`hil.pacing.Pacer`: the
+same start, speed and ``--asap``), sending each frame and epoch at its time, and stops
+with the replay.
 
 Capture (``--capture``): ``rve.hostbus.log`` (every CAN frame sent, candump log format)
 and ``rve.gnss.jsonl`` (every epoch: ``t_send`` and ``t_fix`` in the dataset's clock, UTC,
@@ -50,7 +52,7 @@ __all__ = ["HOST_CHANNELS", "HostBus", "HostBusPlan", "ReplayClock", "nmea_spec"
 
 #: The host CAN bus's channel when none is given: not the RV transport's own default.
 HOST_CHANNELS = {"socketcan": "vcan1", "virtual": "catc-hil-host",
-                 "udp_multicast": "239.74.163.3"}
+                 "udp_multicast": "239.74.163.3", "slcan": "catc-hil-can.pty"}
 
 
 def nmea_spec(text: str) -> tuple[str, Any]:
@@ -255,10 +257,45 @@ class _NmeaSink:
             self._file.close()
 
 
+class _SlcanPty:
+    """A serial CAN adapter played on a pseudo-terminal (``--host-can-interface slcan``):
+    each frame is written as its slcan line (:mod:`catc.vehicle.slcan`) to the pty's
+    master; PATH links to its slave, which an OBU opens as it would a USB-CAN adapter's
+    tty.  What the OBU sends the adapter (``S6``, ``O``) is read and ignored.  A pty
+    nobody reads fills up: the frame is then refused (``can.CanError``, counted)."""
+
+    def __init__(self, path: str) -> None:
+        self.sink = _NmeaSink(("pty", path))
+
+    def send(self, msg: Any, timeout: float | None = None) -> None:
+        import can
+
+        from catc.vehicle.slcan import encode
+
+        assert self.sink._fds is not None
+        master = self.sink._fds[0]
+        with contextlib.suppress(BlockingIOError, OSError):
+            os.read(master, 4096)  # the OBU's commands to its adapter
+        try:
+            os.write(master, encode(msg.arbitration_id, bytes(msg.data), fd=msg.is_fd))
+        except BlockingIOError:
+            raise can.CanError("the pty is full: nobody reads it") from None
+
+    def shutdown(self) -> None:
+        self.sink.close()
+
+
 def _open_can(interface: str, channel: str, fd: bool) -> Any:
     import can
 
     from hil.transport import TransportError, os_reason
+
+    if interface == "slcan":
+        try:
+            return _SlcanPty(channel)
+        except OSError as exc:
+            raise TransportError(f"cannot make the slcan pty {channel}: "
+                                 f"{os_reason(exc)}") from exc
 
     try:
         return can.Bus(interface=interface, channel=channel, fd=fd, receive_own_messages=False)

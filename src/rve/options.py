@@ -24,7 +24,7 @@ DEFAULTS = {
     "idm_host": None, "sign": None, "framing": None, "attack": None,
     "host_bus": False, "host_can_interface": "virtual", "host_can_channel": None,
     "host_can_fd": False, "radar_can_channel": None, "nmea": None,
-    "vehicle": "toyota-rav4-2017", "dbc": None, "gnss_noise": 0.5, "gnss_latency": 50.0,
+    "vehicle": "toyota-rav4-2017", "dbc": None, "gnss_noise": 0.5, "gnss_latency": 100.0,
     "gnss_loss": 0.0, "gnss_outage": None,
 }
 
@@ -97,11 +97,15 @@ def _add_host_bus_arguments(p: argparse.ArgumentParser) -> None:
         "to the vehicle side only.")
     g.add_argument("--host-bus", action="store_true", default=None,
                    help="send the host's CAN bus and GNSS instead of its private channel")
-    g.add_argument("--host-can-interface", choices=("socketcan", "virtual", "udp_multicast"),
-                   help="python-can interface of the host CAN bus (default virtual)")
+    g.add_argument("--host-can-interface",
+                   choices=("socketcan", "virtual", "udp_multicast", "slcan"),
+                   help="python-can interface of the host CAN bus (default virtual), or "
+                        "slcan: play a serial USB-CAN adapter (Lawicel ASCII) on a pty whose "
+                        "slave the channel (a path) links to, for obu run "
+                        "--vehicle-can-interface slcan")
     g.add_argument("--host-can-channel", metavar="NAME",
-                   help="host CAN channel (default vcan1, catc-hil-host or 239.74.163.3 by "
-                        "interface)")
+                   help="host CAN channel (default vcan1, catc-hil-host, 239.74.163.3 or "
+                        "catc-hil-can.pty by interface)")
     g.add_argument("--host-can-fd", action="store_true", default=None,
                    help="send the host's frames as CAN FD frames")
     g.add_argument("--radar-can-channel", metavar="NAME",
@@ -120,7 +124,8 @@ def _add_host_bus_arguments(p: argparse.ArgumentParser) -> None:
                    help="standard deviation of the position error, m (default 0.5; "
                         "Gauss-Markov, 10 s correlation time)")
     g.add_argument("--gnss-latency", type=non_negative, metavar="MS",
-                   help="each fix is sent this long after its UTC epoch (default 50)")
+                   help="each fix is sent this long after its UTC epoch (default 100: a "
+                        "typical receiver's, and obu run --gnss-delay's default)")
     g.add_argument("--gnss-loss", type=percent, metavar="PCT",
                    help="probability that an epoch is lost, %% (default 0)")
     g.add_argument("--gnss-outage", action="append", metavar="START:DURATION",

@@ -207,7 +207,8 @@ def test_the_obu_ticks_on_gnss_time_from_its_cars_can_and_nmea_over_udp(netns, t
     pytest.importorskip("msgpack", reason="python-can's udp_multicast needs msgpack")
     car = Car(netns)
     obu = start_obu(tmp_path, PORTS, *CAN, "--gnss", f"udp:127.0.0.1:{GNSS_PORT}",
-                    "--gnss-latency", "0", "--gnss-delay", "0", prefix=("ip", "netns", "exec", netns))
+                    "--gnss-latency", "0", "--gnss-delay", "0",
+                    prefix=("ip", "netns", "exec", netns))
     try:
         car.drive(8.0)
         time.sleep(0.3)
@@ -228,7 +229,8 @@ def test_bad_input_is_one_line_and_a_counter_and_ticks_go_on(netns, tmp_path):  
     pytest.importorskip("msgpack", reason="python-can's udp_multicast needs msgpack")
     car = Car(netns)
     obu = start_obu(tmp_path, PORTS, *CAN, "--gnss", f"udp:127.0.0.1:{GNSS_PORT}",
-                    "--gnss-latency", "0", "--gnss-delay", "0", prefix=("ip", "netns", "exec", netns))
+                    "--gnss-latency", "0", "--gnss-delay", "0",
+                    prefix=("ip", "netns", "exec", netns))
     good = to_nmea(Fix(car.t0, LAT0, LON0))[0]
     bad_sum = good[:-4] + (b"00" if good[-4:-2] != b"00" else b"11") + b"\r\n"
     speed_id, speed = SLOW[0]
@@ -273,7 +275,8 @@ def test_nmea_through_a_pty(netns, tmp_path):  # noqa: F811
     path = os.ttyname(slave)
     car = Car(netns, gnss_out=lambda data: os.write(master, data))
     obu = start_obu(tmp_path, PORTS, *CAN, "--gnss", f"serial:{path}@115200",
-                    "--gnss-latency", "0", "--gnss-delay", "0", prefix=("ip", "netns", "exec", netns))
+                    "--gnss-latency", "0", "--gnss-delay", "0",
+                    prefix=("ip", "netns", "exec", netns))
     try:
         car.drive(6.0)
         time.sleep(0.3)
@@ -302,7 +305,8 @@ def test_gpsd_on_a_pty(netns, tmp_path):  # noqa: F811
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
         obu = start_obu(tmp_path / "cap", PORTS, *CAN, "--gnss", f"gpsd:127.0.0.1:{port}",
-                        "--gnss-latency", "0", "--gnss-delay", "0", prefix=("ip", "netns", "exec", netns))
+                        "--gnss-latency", "0", "--gnss-delay", "0",
+                    prefix=("ip", "netns", "exec", netns))
         try:
             car.drive(8.0)
             time.sleep(0.3)

@@ -30,6 +30,22 @@ from hil.transport.udp import free_ports, wait_bound
 POSITION_TOL_M = 1e-6
 
 
+def vehicle_flags(capture: Path, speed: float, gnss_delay: float = 0.1
+                  ) -> tuple[list[str], list[str]]:
+    """The ``rve run`` and ``obu run`` flags that put the host on the vehicle side: the
+    RVE plays the car's serial CAN adapter (slcan on a pty beside ``capture``) and sends
+    NMEA by UDP to 127.0.0.1; the OBU reads both at ``--time-scale speed``.  Loopback
+    and a pty only: no root, no network namespace."""
+    pty = str(capture.parent / f"{capture.name}.can")
+    (gnss,) = free_ports(1)
+    rve = ["--host-bus", "--host-can-interface", "slcan", "--host-can-channel", pty,
+           "--nmea", f"udp:127.0.0.1:{gnss}", "--gnss-latency", str(gnss_delay * 1000.0)]
+    obu = ["--host-source", "vehicle", "--vehicle-can-interface", "slcan",
+           "--vehicle-can-channel", pty, "--gnss", f"udp:127.0.0.1:{gnss}",
+           "--gnss-delay", str(gnss_delay), "--time-scale", str(speed)]
+    return rve, obu
+
+
 class LiveError(RuntimeError):
     """A daemon failed; ``str()`` is one line with its exit status and last error line."""
 

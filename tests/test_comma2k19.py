@@ -85,3 +85,30 @@ def test_meta_holds_the_real_buses_with_their_lengths_and_the_fixes(table):
 def test_a_folder_that_is_no_segment_is_one_line(tmp_path):
     with pytest.raises(DatasetError, match="not a comma2k19 segment"):
         load_table(f"comma2k19:{tmp_path}", None)
+
+
+def test_the_profile_s_signs_agree_with_the_car_s_motion(table):
+    """KINEMATICS: ACCEL_X is positive when the RAV4 brakes (the profile turns it), and
+    ACCEL_Y, like J2735's lateral acceleration, is positive to the right: on the minute,
+    1 s means of each against the fused pose's acceleration and speed x yaw rate."""
+    from catc.vehicle import CanDecoder
+    from hil.vehicle import load_profile
+
+    profile, db = load_profile("toyota-rav4-2017")
+    decoder = CanDecoder(profile, db)
+    can = table.meta["vehicle_can"]
+    rows = []
+    for r in can[(can["bus"] == 0) & (can["address"] == 0x24)]:
+        data = bytes(r["data"]).ljust(8, b"\0")[: int(r["length"])]
+        if decoder.take(float(r["t"]), 0x24, data):
+            s = decoder.state
+            rows.append((float(r["t"]), s["accel_long_mps2"], s["accel_lat_mps2"]))
+    a = np.array(rows)
+    host = table.tracks["rav4"]
+    inner = (host.t > a[0, 0] + 0.5) & (host.t < a[-1, 0] - 0.5)
+    t = host.t[inner]
+    mean = [np.array([a[(a[:, 0] > x - 0.5) & (a[:, 0] < x + 0.5), k].mean() for x in t])
+            for k in (1, 2)]
+    lateral = host.speed[inner] * np.radians(host.yaw_rate[inner])
+    assert np.corrcoef(mean[0], host.accel[inner])[0, 1] > 0.85
+    assert np.corrcoef(mean[1], lateral)[0, 1] > 0.75

@@ -48,11 +48,11 @@ def test_position_speed_and_yaw_rate_against_comma_s_pose_at_every_tick(minute):
     assert minute["counters"]["gnss_fixes"] == 579
 
 
-def test_five_seconds_without_gnss_dead_reckoning_stays_within_1_5_m(segment):
-    r = host_state.run(segment, drop=(20.0, 5.0))
-    assert r["position_in_dropout_m"]["n"] >= 45
-    assert r["position_in_dropout_m"]["max"] <= 1.5
-    assert r["counters"]["gnss_silent"] == 1  # silent for 5 s: told once, ticks go on
+def test_six_seconds_without_gnss_dead_reckoning_stays_within_2_m(segment):
+    r = host_state.run(segment, drop=(20.0, 6.0))
+    assert r["position_in_dropout_m"]["n"] >= 55
+    assert r["position_in_dropout_m"]["max"] <= 2.0  # ~100 m driven on CAN alone
+    assert r["counters"]["gnss_silent"] == 1  # silent past 5 s: told once, ticks go on
 
 
 def _fix(t: float, north_m: float, speed: float = 10.0) -> Fix:

@@ -35,8 +35,9 @@ What feeds which BSM field, and why (docs/reference/vehicle.md has the table):
 * **Accelerations** are CAN's, low-pass filtered (first order, 1 Hz cut-off, J2945/1).
 * Brake, gear, steering wheel angle and lights are CAN's latest values.
 * **Time**: the OBU's clock is GNSS time.  A fix's sentences arrive ``gnss_delay_s``
-  after its UTC stamp, so the GNSS time at local ``t`` is ``t`` plus the newest
-  ``stamp + gnss_delay_s - arrival``.  When the fixes stop, the clock keeps that offset
+  after its UTC stamp, so the GNSS time at local ``t`` is ``t`` plus
+  ``stamp + gnss_delay_s - arrival``, smoothed over the fixes (:data:`CLOCK_GAIN`;
+  a step of more than :data:`CLOCK_STEP_S` is taken at once).  When the fixes stop, the clock keeps that offset
   and the position keeps dead reckoning (its uncertainty grows; ``gnss_age_s`` says how
   long it has been); after ``gnss_timeout_s`` the state is marked ``gnss_lost``.
 
@@ -83,6 +84,12 @@ _LAG_MIN_FIXES = 50
 _LAG_STEP = 10
 #: How long the dead-reckoning history is kept (s): the longest fix latency.
 _HISTORY_S = 1.0
+#: The GNSS clock follows each fix's offset by this fraction (the sentences' arrival
+#: jitter, ~±30 ms on the comma2k19 minute, is smoothed out of it; a time constant of
+#: ten fixes)...
+CLOCK_GAIN = 0.1
+#: ...unless the offset moved by more than this (s): then the clock steps.
+CLOCK_STEP_S = 0.5
 #: The wheel speed is used while its newest frame is at most this old (s).
 CAN_FRESH_S = 0.5
 #: The accelerations' low-pass cut-off (Hz), J2945/1.
@@ -228,7 +235,11 @@ class HostEstimator:
             return
         self.counters["gnss_fixes"] += 1
         self.last_stamp, self.last_fix, self.silent = fix.t_unix, t, False
-        self.offset = fix.t_unix + self.config.gnss_delay_s - t
+        offset = fix.t_unix + self.config.gnss_delay_s - t
+        if self.offset is None or abs(offset - self.offset) > CLOCK_STEP_S:
+            self.offset = offset  # the first fix, or a clock step: take it
+        else:  # smooth the sentences' arrival jitter out of the clock
+            self.offset += CLOCK_GAIN * (offset - self.offset)
         if fix.alt_m is not None:
             self.elev = fix.alt_m
         if fix.speed_mps is not None:

@@ -54,6 +54,9 @@ __all__ = ["DEFAULT_CHANNELS", "MAX_BACKOFF_S", "TICK_S", "VehicleHost", "vehicl
 #: The host's BSM period on GNSS time (s), and the ticks per second.
 TICK_S = 0.1
 _PER_S = 10
+#: With nothing from the car (no CAN frame, no GNSS input) for this long (s of the car's
+#: time), the OBU stops ticking until it hears from it again.
+CAR_SILENT_S = 1.0
 #: The longest wait before reopening a lost gpsd connection or serial line (s).
 MAX_BACKOFF_S = 5.0
 #: The car's bus when no ``--vehicle-can-channel`` is given (not the RV transport's).
@@ -476,7 +479,15 @@ class VehicleHost:
             if newest > k + 1:
                 self.counters["vehicle_ticks_skipped"] += newest - k
                 k = newest
-            self._tick(k / _PER_S)
+            if now - self.scale * (time.monotonic() - self.last_input) < now - CAR_SILENT_S:
+                # nothing from the car at all (no CAN, no GNSS): its ignition is off, or
+                # the bench stopped; no host to tick (a GNSS silence alone is dead
+                # reckoned on CAN)
+                self.counters["vehicle_ticks_silent"] += 1
+                self.log("vehicle_silent", f"vehicle: no CAN and no GNSS for "
+                                           f"{CAR_SILENT_S:.0f} s: no ticks")
+            else:
+                self._tick(k / _PER_S)
             k += 1
 
     def _tick(self, t_gnss: float) -> None:

@@ -69,4 +69,4 @@ def test_the_vehicle_path_scores_as_the_private_channel(tmp_path, per):
     counters = json.loads((tmp_path / "vehicle" / "obu.counters.json").read_text())
     assert counters.get("host_channel_ignored", 0) == 0
     assert counters.get("can_bad_checksum", 0) == 0 and counters["can_SPEED"] > 1_000
-    assert counters["nmea_fixes"] >= 290 and counters["slcan_frames"] > 10_000
+    assert counters["nmea_fixes"] >= 290 and counters["slcan_frames"] > 9_000  # 30 s

@@ -37,9 +37,10 @@ What feeds which BSM field, and why (docs/reference/vehicle.md has the table):
 * **Time**: the OBU's clock is GNSS time.  A fix's sentences arrive ``gnss_delay_s``
   after its UTC stamp, so the GNSS time at local ``t`` is ``t`` plus
   ``stamp + gnss_delay_s - arrival``, smoothed over the fixes (:data:`CLOCK_GAIN`;
-  a step of more than :data:`CLOCK_STEP_S` is taken at once).  When the fixes stop, the clock keeps that offset
-  and the position keeps dead reckoning (its uncertainty grows; ``gnss_age_s`` says how
-  long it has been); after ``gnss_timeout_s`` the state is marked ``gnss_lost``.
+  a step of more than :data:`CLOCK_STEP_S` is taken at once).  When the fixes stop,
+  the clock keeps that offset and the position keeps dead reckoning (its uncertainty
+  grows; ``gnss_age_s`` says how long it has been); after ``gnss_timeout_s`` the state
+  is marked ``gnss_lost``.
 
 Before the first fix there is no state (no position, no clock).
 """

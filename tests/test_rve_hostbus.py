@@ -33,6 +33,7 @@ import numpy as np
 import pytest
 from pynmeagps import NMEAReader
 
+from catc.geo import distance_m
 from catc.gnss import DEFAULT_UTC_BASE, Fix, NmeaStream
 from catc.mobility import MobilityTable, Track
 from catc.vehicle import CanDecoder, toyota_checksum
@@ -458,17 +459,21 @@ def test_can_over_udp_multicast_between_processes(netns, tmp_path, rav4):  # noq
             for x in log] == got
 
 
-def test_gpsd_reads_the_nmea_from_a_pty(tmp_path):
+def test_gpsd_reads_the_nmea_from_a_pty_and_so_does_our_obu(tmp_path):
+    """gpsd (Debian) reads the RVE's NMEA from a pty and gpspipe reports the fixes within
+    NMEA's precision; our OBU reads the same feed through gpsd (with the car's CAN from
+    the same RVE, as a serial slcan adapter on a second pty) and its host follows it."""
     for tool in ("gpsd", "gpspipe"):
         if shutil.which(tool) is None:
             pytest.skip(f"{tool} absent (apt-get install gpsd gpsd-clients)")
-    link = tmp_path / "gnss0"
+    link, can_link = tmp_path / "gnss0", tmp_path / "can0"
     (port,) = free_ports(1)
     rv = free_ports(2)
     rve = _rve("--host-bus", "--nmea", f"pty:{link}", "--duration", "8", "--gnss-noise",
                "1.5", "--to", f"127.0.0.1:{rv[0]}", "--host-to", f"127.0.0.1:{rv[1]}",
+               "--host-can-interface", "slcan", "--host-can-channel", str(can_link),
                "--capture", str(tmp_path / "cap"))
-    gpsd = pipe = None
+    gpsd = pipe = obu = None
     try:
         deadline = time.monotonic() + 20
         while not link.is_symlink():
@@ -478,11 +483,20 @@ def test_gpsd_reads_the_nmea_from_a_pty(tmp_path):
                                  str(tmp_path / "gpsd.sock"), str(link)],
                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
         time.sleep(0.5)
+        obu = subprocess.Popen(
+            [sys.executable, "-m", "obu.cli", "run", "--listen", f"127.0.0.1:{rv[0]}",
+             "--host-listen", f"127.0.0.1:{rv[1]}", "--host-source", "vehicle",
+             "--vehicle-can-interface", "slcan", "--vehicle-can-channel", str(can_link),
+             "--gnss", f"gpsd:127.0.0.1:{port}", "--capture", str(tmp_path / "obu"),
+             "--idle-exit", "2", "--no-progress", "--predictor", "ca"],
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         pipe = subprocess.run(["gpspipe", "-w", "-n", "40", f"127.0.0.1:{port}"],
                               capture_output=True, text=True, timeout=30)
         summary = _finish(rve)
+        _, obu_err = obu.communicate(timeout=30)
+        assert obu.returncode == 0, obu_err
     finally:
-        for proc in (gpsd, rve):
+        for proc in (obu, gpsd, rve):
             if proc is not None and proc.poll() is None:
                 proc.send_signal(signal.SIGTERM)
                 try:
@@ -503,6 +517,17 @@ def test_gpsd_reads_the_nmea_from_a_pty(tmp_path):
         r = by_utc[round(utc, 2)]
         if "speed" in o:
             assert o["speed"] == pytest.approx(r["speed_mps"], abs=0.001)
+    # our OBU through the same gpsd: a fix per epoch, a tick per 100 ms of GNSS time, the
+    # host within the fixes' noise (1.5 m) of the truth
+    counters = json.loads((tmp_path / "obu" / "obu.counters.json").read_text())
+    assert counters["gnss_gpsd_fixes"] >= 0.8 * summary["nmea_epochs"]
+    assert counters["slcan_frames"] > 1_000 and counters.get("can_bad_checksum", 0) == 0
+    truth = {round(r["utc"], 1): r for r in sent}
+    ticks = _lines(tmp_path / "obu" / "obu.vehicle.jsonl")
+    assert len(ticks) >= 50
+    off = [distance_m(v["lat"], v["lon"], truth[k]["true_lat"], truth[k]["true_lon"])
+           for v in ticks if (k := round(v["t_gnss"], 1)) in truth]
+    assert len(off) >= 50 and float(np.percentile(off, 95)) < 3.0, off
 
 
 @pytest.mark.socketcan

@@ -475,8 +475,8 @@ class VehicleHost:
             if wait > 0.0:  # re-read the clock at least every 50 ms: a fix may move it
                 await asyncio.sleep(min(wait / self.scale, 0.05))
                 continue
-            newest = math.floor(g + 1e-4)  # over a whole tick late: the newest only
-            if newest > k + 1:
+            newest = math.floor(g + 1e-4)  # over 3 ticks late: the newest only (the
+            if newest > k + 3:  # first fix's epoch comes up to its delay late: caught up)
                 self.counters["vehicle_ticks_skipped"] += newest - k
                 k = newest
             if now - self.scale * (time.monotonic() - self.last_input) < now - CAR_SILENT_S:

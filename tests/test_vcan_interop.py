@@ -326,7 +326,7 @@ def test_canplayer_replays_a_capture_into_the_obu_with_the_same_score(vcan, tmp_
 
     live, replayed = tmp_path / "live", tmp_path / "replayed"
     obu = _start_obu(vcan, True, live, "--idle-exit", "2")
-    _rve(vcan, True, live, "--per", "50", "--seed", "4", "--duration", "8", "--speed", "4")
+    _rve(vcan, True, live, "--per", "50", "--seed", "4", "--duration", "8", "--speed", "2")
     _stop(obu, idle_exit=True)
     replayed.mkdir()
     for name in ("rve.config.json", "rve.truth.jsonl", "rve.schedule.jsonl"):

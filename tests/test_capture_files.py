@@ -521,3 +521,19 @@ def test_captures_tracks_prints_the_json_lines_of_before(tmp_path):
                           "--id", json.loads(out[1].stdout.splitlines()[0])["id"]],
                          capture_output=True, text=True, timeout=60).stdout.splitlines()
     assert csv[0].startswith("t,sec_mark,id,x,y,") and len(csv) > 30
+
+
+def test_the_clock_offset_is_the_one_most_first_ticks_agree_on():
+    """An OBU reading its own car ticks from its first GNSS fix, which can come before
+    the replay's first host sample: on a trip of a minute, that first tick's secMark
+    names the sample a minute later.  The offset is the one most first ticks agree on."""
+    from catc.bsm import sec_mark
+    from hil.capture.reader import CaptureError, clock_offset
+
+    truth = [{"host": True, "t": round(48.4 + 0.1 * k, 1)} for k in range(600)]
+    ticks = [{"t": round(48.3 + 0.1 * k, 1), "sec_mark": sec_mark(48.3 + 0.1 * k)}
+             for k in range(60)]
+    assert clock_offset(truth, ticks, Path(".")) == 0.0
+    assert clock_offset(truth, ticks[0], Path(".")) == -60.0  # one tick alone: fooled
+    with pytest.raises(CaptureError, match="matches no host sample"):
+        clock_offset(truth, [{"t": 1.05, "sec_mark": 1050}], Path("."))

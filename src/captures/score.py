@@ -253,8 +253,7 @@ def score(directory: Path) -> dict:
     names = {tid: v for v, tid in rve_cfg["vehicles"].items()}
     host_tid = rve_cfg["vehicles"].get(rve_cfg.get("host"))
     real = set(names) - {host_tid}
-    first_tick = next(cap.iter_ticks())
-    offset = clock_offset(cap.iter_truth(), first_tick, directory)
+    offset = clock_offset(cap.iter_truth(), cap.iter_ticks(), directory)
     truth_xy = _truth_tracks(cap, obu_cfg["origin"])
 
     pte = _Pte(truth_xy, host_tid, offset)

@@ -57,7 +57,7 @@ def load(directory: Path):
         counters = read_json(directory / schema.OBU_COUNTERS)
     if (directory / schema.RVE_TRUTH).is_file():
         cap = read_capture(directory, rx=False)
-        offset = clock_offset(cap.truth, cap.ticks[0], directory)
+        offset = clock_offset(cap.truth, cap.ticks, directory)
         truth = {tid: (t + offset, x, y) for tid, (_, t, x, y)
                  in truth_in_frame(cap.truth, cap.obu_config["origin"]).items()}
         ticks, tracks, events = cap.ticks, cap.tracks, cap.events

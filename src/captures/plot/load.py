@@ -174,7 +174,7 @@ def load_run(directory: Path | str) -> Run:
     rve_cfg, obu_cfg = cap.rve_config, cap.obu_config
     names = {tid: v for v, tid in rve_cfg["vehicles"].items()}
     host_id = rve_cfg["vehicles"].get(rve_cfg.get("host"), "")
-    offset = clock_offset(cap.truth, cap.ticks[0], cap.directory)
+    offset = clock_offset(cap.truth, cap.ticks, cap.directory)
     truth = _truth(cap.truth, obu_cfg["origin"], offset, names)
     if not host_id:
         host_id = next((r["id"] for r in cap.truth if r["host"]), "")

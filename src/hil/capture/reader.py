@@ -22,10 +22,11 @@ A file that cannot be read raises an :class:`OSError` that names it.
 
 from __future__ import annotations
 
+import itertools
 import json
 import re
 import zlib
-from collections import defaultdict
+from collections import Counter, defaultdict
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -411,15 +412,33 @@ def read_capture(directory: Path, rx: bool = True) -> Capture:
     return cap
 
 
-def clock_offset(truth: Iterable[dict], first_tick: dict, directory: Path) -> float:
-    """OBU clock - dataset time (a whole number of minutes): the host truth sample whose
-    secMark is the OBU's first tick's."""
+def clock_offset(truth: Iterable[dict], first_tick: dict | Iterable[dict],
+                 directory: Path) -> float:
+    """OBU clock - dataset time (a whole number of minutes): the offset that puts the
+    most of the OBU's first ticks (``first_tick``: one tick, or its first ticks; the first
+    :data:`_OFFSET_TICKS` are used) on host samples of the RVE's truth with their secMark.
+    One tick is not enough: an OBU that reads its own car ticks from its first GNSS fix,
+    which may come before the replay's first host sample, and on a trip of a minute or
+    more that tick's secMark names a sample a minute later."""
+    ticks = [first_tick] if isinstance(first_tick, dict) else \
+        list(itertools.islice(first_tick, _OFFSET_TICKS))
+    host: dict[int, list[float]] = defaultdict(list)
     for r in truth:
-        if r["host"] and sec_mark(r["t"]) == first_tick["sec_mark"]:
-            return first_tick["t"] - r["t"]
-    raise CaptureError(f"{directory}: the OBU's first tick (secMark "
-                       f"{first_tick['sec_mark']}) matches no host sample of the RVE's "
-                       "truth")
+        if r["host"]:
+            host[sec_mark(r["t"])].append(r["t"])
+    votes: Counter[float] = Counter()
+    for tick in ticks:
+        for t in host.get(tick["sec_mark"], ()):
+            votes[round(tick["t"] - t, 3)] += 1
+    if not votes:
+        raise CaptureError(f"{directory}: the OBU's first tick (secMark "
+                           f"{ticks[0]['sec_mark'] if ticks else None}) matches no host "
+                           "sample of the RVE's truth")
+    return votes.most_common(1)[0][0]
+
+
+#: How many of the OBU's first ticks vote on its clock offset.
+_OFFSET_TICKS = 50
 
 
 def truth_in_frame(truth: Iterable[dict], origin) -> dict[str, tuple[list[dict], np.ndarray,

@@ -607,11 +607,12 @@ def test_our_obu_reads_its_car_on_vcan(tmp_path):
         run_daemons(out, ["--dataset", "scenario:highway-braking", "--duration", "10",
                           "--speed", str(speed), *rve], ["--predictor", "ca", *obu])
     result = score(out)
-    # every host sample ticked but, under the VM's emulated CPU, the first few: the first
-    # fix's epoch is caught up only while the OBU is at most 0.3 s of car time behind
+    # every host sample ticked but, under the VM's emulated CPU, a few at one end: the
+    # first fix's epoch is caught up only while the OBU is at most 0.3 s of car time
+    # behind, and the last sample's fix (sent 0.1 s after it) may go with the replay
     run = result["run"]
     assert run["coverage"] >= 0.9 and run["gaps"] <= 1, run
-    assert not run["first_gaps"] or run["first_gaps"][0][0] < 0.75, run
+    assert all(a < 0.75 or b > 9.7 for a, b in run["first_gaps"]), run
     c = json.loads((out / "obu.counters.json").read_text())
     assert c["can_WHEEL_SPEEDS"] > 700 and c.get("can_bad_checksum", 0) == 0
     assert c.get("can_unknown_id", 0) == 0 and c["gnss_fixes"] >= 95

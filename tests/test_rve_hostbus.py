@@ -596,7 +596,7 @@ def test_our_obu_reads_its_car_on_vcan(tmp_path):
     from captures.live import run_daemons, vehicle_flags
     from captures.score import score
 
-    speed = 2.0  # the VM's CPU is emulated
+    speed = 1.0  # real time: the VM's CPU is emulated, and may be shared
     with vcan_interface() as iface:
         out = tmp_path / "run"
         rve, obu = vehicle_flags(out, speed)
@@ -604,7 +604,7 @@ def test_our_obu_reads_its_car_on_vcan(tmp_path):
         rve[rve.index("--host-can-channel") + 1] = iface
         obu[obu.index("slcan")] = "socketcan"
         obu[obu.index("--vehicle-can-channel") + 1] = iface
-        run_daemons(out, ["--dataset", "scenario:highway-braking", "--duration", "10",
+        run_daemons(out, ["--dataset", "scenario:highway-braking", "--duration", "8",
                           "--speed", str(speed), *rve], ["--predictor", "ca", *obu])
     result = score(out)
     # every host sample ticked but, under the VM's emulated CPU, a few at one end: the
@@ -612,7 +612,7 @@ def test_our_obu_reads_its_car_on_vcan(tmp_path):
     # behind, and the last sample's fix (sent 0.1 s after it) may go with the replay
     run = result["run"]
     assert run["coverage"] >= 0.9 and run["gaps"] <= 1, run
-    assert all(a < 0.75 or b > 9.7 for a, b in run["first_gaps"]), run
+    assert all(a < 0.75 or b > 7.7 for a, b in run["first_gaps"]), run
     c = json.loads((out / "obu.counters.json").read_text())
-    assert c["can_WHEEL_SPEEDS"] > 700 and c.get("can_bad_checksum", 0) == 0
-    assert c.get("can_unknown_id", 0) == 0 and c["gnss_fixes"] >= 95
+    assert c["can_WHEEL_SPEEDS"] > 550 and c.get("can_bad_checksum", 0) == 0
+    assert c.get("can_unknown_id", 0) == 0 and c["gnss_fixes"] >= 75

@@ -607,12 +607,16 @@ def test_our_obu_reads_its_car_on_vcan(tmp_path):
         run_daemons(out, ["--dataset", "scenario:highway-braking", "--duration", "8",
                           "--speed", str(speed), *rve], ["--predictor", "ca", *obu])
     result = score(out)
-    # every host sample ticked but, under the VM's emulated CPU, a few at one end: the
-    # first fix's epoch is caught up only while the OBU is at most 0.3 s of car time
-    # behind, and the last sample's fix (sent 0.1 s after it) may go with the replay
-    run = result["run"]
-    assert run["coverage"] >= 0.9 and run["gaps"] <= 1, run
-    assert all(a < 0.75 or b > 7.7 for a, b in run["first_gaps"]), run
     c = json.loads((out / "obu.counters.json").read_text())
+    sent = json.loads((out / "rve.end.json").read_text())
+    # every frame the RVE put on the vcan read and decoded, every checksum passing
+    assert c["can_frames"] == sent["host_can_frames"] > 3_000
     assert c["can_WHEEL_SPEEDS"] > 550 and c.get("can_bad_checksum", 0) == 0
+    # ticks on GNSS time, fewer than the host samples only where the OBU fell behind:
+    # under the VM's emulated CPU (~10x slower, shared with whatever else runs) the OBU
+    # reading ~450 frames/s skips the ticks it is over 0.3 s late for (counted)
+    run = result["run"]
+    assert run["coverage"] >= 0.5, run
+    assert run["ticks"] + c.get("vehicle_ticks_skipped", 0) >= run["expected_ticks"] - 2, \
+        (run, c.get("vehicle_ticks_skipped"))
     assert c.get("can_unknown_id", 0) == 0 and c["gnss_fixes"] >= 75

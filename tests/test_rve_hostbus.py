@@ -610,11 +610,11 @@ def test_our_obu_reads_its_car_on_vcan(tmp_path):
     c = json.loads((out / "obu.counters.json").read_text())
     sent = json.loads((out / "rve.end.json").read_text())
     # every frame the RVE put on the vcan read and decoded, every checksum passing
-    assert c["can_frames"] == sent["host_can_frames"] > 3_000
+    assert c["can_frames"] == sent["host_can_frames"] > 2_000  # ~335 frames/s
     assert c["can_WHEEL_SPEEDS"] > 550 and c.get("can_bad_checksum", 0) == 0
     # ticks on GNSS time, fewer than the host samples only where the OBU fell behind:
     # under the VM's emulated CPU (~10x slower, shared with whatever else runs) the OBU
-    # reading ~450 frames/s skips the ticks it is over 0.3 s late for (counted)
+    # reading ~335 frames/s skips the ticks it is over 0.3 s late for (counted)
     run = result["run"]
     assert run["coverage"] >= 0.5, run
     assert run["ticks"] + c.get("vehicle_ticks_skipped", 0) >= run["expected_ticks"] - 2, \

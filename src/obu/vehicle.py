@@ -54,6 +54,8 @@ __all__ = ["DEFAULT_CHANNELS", "MAX_BACKOFF_S", "TICK_S", "VehicleHost", "vehicl
 #: The host's BSM period on GNSS time (s), and the ticks per second.
 TICK_S = 0.1
 _PER_S = 10
+#: The receive buffer asked for a SocketCAN bus (octets).
+CAN_RCVBUF = 4 * 1024 * 1024
 #: With nothing from the car (no CAN frame, no GNSS input) for this long (s of the car's
 #: time), the OBU stops ticking until it hears from it again.
 CAR_SILENT_S = 1.0
@@ -209,6 +211,7 @@ class VehicleHost:
                 raise TransportError(f"cannot open the vehicle's CAN bus "
                                      f"{a.vehicle_can_interface}:{channel}: "
                                      f"{os_reason(exc)}") from exc
+        self._grow_rcvbuf()
         try:
             if slcan:
                 self.tasks.append(asyncio.create_task(
@@ -230,6 +233,24 @@ class VehicleHost:
         except BaseException:
             await self.aclose()
             raise
+
+    def _grow_rcvbuf(self) -> None:
+        """A SocketCAN bus's receive buffer grown to :data:`CAN_RCVBUF` (as the UDP
+        receiver's): the kernel's default holds ~100 frames, a third of a second of a
+        car's bus, and a busy moment of the OBU would lose frames from it.  The size the
+        kernel granted is counted (``vehicle_can_rcvbuf``)."""
+        import socket
+
+        sock = getattr(self.bus, "socket", None)
+        if not isinstance(sock, socket.socket):
+            return
+        for option in ("SO_RCVBUFFORCE", "SO_RCVBUF"):  # FORCE: past rmem_max, as root
+            with contextlib.suppress(OSError, AttributeError):
+                sock.setsockopt(socket.SOL_SOCKET, getattr(socket, option), CAN_RCVBUF)
+                break
+        with contextlib.suppress(OSError):
+            self.counters["vehicle_can_rcvbuf"] = sock.getsockopt(socket.SOL_SOCKET,
+                                                                  socket.SO_RCVBUF)
 
     def _ended(self, task: asyncio.Task) -> None:
         """A task of this object ended other than by :meth:`aclose`: a bug, said once."""

@@ -112,15 +112,19 @@ async def serve(args: argparse.Namespace) -> dict:
 
     rx = None
     try:
-        rx = await _open_receiver(args)
+        # the car's side first: once the RV ports are bound (what a launcher may wait
+        # for) its bus is open too, and no frame of the car is sent to nobody
         if getattr(args, "host_source", "channel") == "vehicle":
             from obu.vehicle import VehicleHost
 
             obu.vehicle = VehicleHost(args, push, obu.log, obu.cap)
             await obu.vehicle.start()
+        rx = await _open_receiver(args)
     except BaseException as err:
         if rx is not None:
             await rx.aclose()
+        if obu.vehicle is not None:
+            await obu.vehicle.aclose()
         with contextlib.suppress(OSError):  # err, not a capture file, ends the run
             obu.close(*schema.failed(err))
         raise

@@ -610,7 +610,8 @@ def test_our_obu_reads_its_car_on_vcan(tmp_path):
     c = json.loads((out / "obu.counters.json").read_text())
     sent = json.loads((out / "rve.end.json").read_text())
     # every frame the RVE put on the vcan read and decoded, every checksum passing
-    assert c["can_frames"] == sent["host_can_frames"] > 2_000  # ~335 frames/s
+    assert c["can_frames"] == sent["host_can_frames"] > 2_000, \
+        {k: v for k, v in c.items() if k.startswith(("can_", "vehicle_", "gnss_"))}
     assert c["can_WHEEL_SPEEDS"] > 550 and c.get("can_bad_checksum", 0) == 0
     # ticks on GNSS time, fewer than the host samples only where the OBU fell behind:
     # under the VM's emulated CPU (~10x slower, shared with whatever else runs) the OBU

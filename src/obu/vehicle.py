@@ -54,6 +54,8 @@ __all__ = ["DEFAULT_CHANNELS", "MAX_BACKOFF_S", "TICK_S", "VehicleHost", "vehicl
 #: The host's BSM period on GNSS time (s), and the ticks per second.
 TICK_S = 0.1
 _PER_S = 10
+#: The most frames read from the car's bus in one pass of the event loop.
+DRAIN_MAX = 1_000
 #: The receive buffer asked for a SocketCAN bus (octets).
 CAN_RCVBUF = 4 * 1024 * 1024
 #: With nothing from the car (no CAN frame, no GNSS input) for this long (s of the car's
@@ -70,6 +72,15 @@ def serial_spec(channel: str) -> GnssSpec:
     """A serial CAN adapter's ``PATH[@BAUD]`` (``--vehicle-can-channel``)."""
     path, at, baud = channel.rpartition("@") if "@" in channel else (channel, "", "")
     return GnssSpec("serial", path=path, baud=int(baud) if at and baud.isdigit() else None)
+
+
+def _fileno(bus: Any) -> int | None:
+    """The bus's file descriptor for the event loop, or None (it has none)."""
+    try:
+        fd = bus.fileno()
+    except (NotImplementedError, AttributeError, OSError, ValueError):
+        return None
+    return fd if isinstance(fd, int) and fd >= 0 else None
 
 
 class _Frame:
@@ -163,6 +174,7 @@ class VehicleHost:
         self.seq = 0
         self.bus: Any = None
         self.notifier: Any = None
+        self.reader_fd: int | None = None
         self.tasks: list[asyncio.Task] = []
         self.transport: asyncio.DatagramTransport | None = None
         self.fixed = asyncio.Event()  # the first fix came: ticks may start
@@ -216,7 +228,10 @@ class VehicleHost:
             if slcan:
                 self.tasks.append(asyncio.create_task(
                     self._serial(tty_spec, fd, self._slcan_bytes, "can")))
-            else:
+            elif _fileno(self.bus) is not None:  # SocketCAN: drain on the event loop
+                loop.add_reader(_fileno(self.bus), self._drain)
+                self.reader_fd = _fileno(self.bus)
+            else:  # no file descriptor (virtual, udp_multicast): python-can's thread
                 self.notifier = can.Notifier(self.bus, [self._on_can], timeout=0.05,
                                              loop=loop)
             spec = self.spec
@@ -233,6 +248,21 @@ class VehicleHost:
         except BaseException:
             await self.aclose()
             raise
+
+    def _drain(self) -> None:
+        """Every frame waiting in the bus's socket, up to :data:`DRAIN_MAX` a call
+        (python-can's Notifier reads one per event-loop pass: a busy loop fell behind a
+        car's ~335 frames/s)."""
+        for _ in range(DRAIN_MAX):
+            try:
+                msg = self.bus.recv(0)
+            except Exception as err:  # a bus that fails: said, and kept
+                self.counters["can_read_errors"] += 1
+                self.log("can_read", f"vehicle CAN: cannot read: {err}")
+                return
+            if msg is None:
+                return
+            self._on_can(msg)
 
     def _grow_rcvbuf(self) -> None:
         """A SocketCAN bus's receive buffer grown to :data:`CAN_RCVBUF` (as the UDP
@@ -269,6 +299,9 @@ class VehicleHost:
         if self.transport is not None:
             self.transport.close()
             self.transport = None
+        if self.reader_fd is not None:
+            asyncio.get_running_loop().remove_reader(self.reader_fd)
+            self.reader_fd = None
         if self.notifier is not None:
             self.notifier.stop(timeout=1.0)
             self.notifier = None

@@ -21,7 +21,7 @@ DEFAULTS = {
     "jitter": 0.0, "seed": 0, "speed": 1.0, "asap": False, "capture": None, "overwrite": False,
     "duration": None, "host": None, "trip": None, "ieee1609": False, "distance": False,
     "can_interface": "virtual", "can_channel": None, "can_fd": False, "progress": True,
-    "idm_host": None, "sign": None, "sign_workers": 2, "sign_lookahead": 1.0,
+    "idm_host": None, "sign": None, "sign_workers": 1, "sign_lookahead": 1.0,
     "framing": None, "attack": None,
     "host_bus": False, "host_can_interface": "virtual", "host_can_channel": None,
     "host_can_fd": False, "radar_can_channel": None, "nmea": None,

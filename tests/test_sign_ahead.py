@@ -17,16 +17,18 @@ from catc.replay import plan
 from catc.security import Verifier, time64_to_unix
 from hil.datasets import load_table
 from hil.pki import init, load
+from hil.transport import Sender
 from rve import run as rve_run
 
 SPEED = 4.0
 
 
-class _Sink:
+class _Sink(Sender):
     """A sender that keeps what it is given: (channel, frame, wall time, monotonic)."""
 
     def __init__(self) -> None:
         self.local: dict = {}
+        self.stats: dict = {}
         self.sent: list[tuple[str, bytes, float, float]] = []
 
     async def send(self, frame: bytes) -> None:

@@ -194,17 +194,23 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
                 return (time.time(), 0.0 if args.asap
                         else max(0.0, pacer.clock() - deadline))  # noqa: B023
 
-            sent_at, extra_at = [], []
-            for ev, frame in zip(batch, frames, strict=True):
-                if ev["host"] and len(extra_at) < len(extra):  # attackers before the host
+            sent_at: list = [None] * len(frames)
+            extra_at: list = []
+            burst: list[int] = []  # the RV frames due before the next host frame
+            for k, (ev, frame) in enumerate(zip(batch, frames, strict=True)):
+                if not ev["host"]:
+                    if frame is not None:
+                        burst.append(k)
+                    continue
+                await _send_burst(sender, frames, burst, sent_at, stamp)
+                if len(extra_at) < len(extra):  # attackers before the host
                     for attack_frame, _ in extra:
                         await sender.send(attack_frame)
                         extra_at.append(stamp())
-                if frame is None:
-                    sent_at.append(None)
-                    continue
-                await (sender.send_host(frame) if ev["host"] else sender.send(frame))
-                sent_at.append(stamp())
+                if frame is not None:
+                    await sender.send_host(frame)
+                    sent_at[k] = stamp()
+            await _send_burst(sender, frames, burst, sent_at, stamp)
             for attack_frame, _ in extra[len(extra_at):]:
                 await sender.send(attack_frame)
                 extra_at.append(stamp())
@@ -266,6 +272,17 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
 #: the signing counters of the summary and rve.end.json (rve.signing, rve.signahead)
 _SIGN_COUNTS = ("signed", "with_certificate", "sign_ahead_batches", "sign_ahead_waits",
                 "sign_ahead_wait_ms_max")
+
+
+async def _send_burst(sender: Any, frames: list[bytes | None], burst: list[int],
+                      sent_at: list, stamp: Any) -> None:
+    """Send the RV frames ``burst`` indexes back to back, each one's ``stamp()`` into
+    ``sent_at``; empties ``burst``."""
+    if burst:
+        stamps = await sender.send_many([frames[k] for k in burst], stamp)
+        for k, when in zip(burst, stamps, strict=True):
+            sent_at[k] = when
+        burst.clear()
 
 
 def _account(ev: Any, frame: bytes | None, when: tuple[float, float] | None,

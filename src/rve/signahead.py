@@ -54,11 +54,23 @@ lateness margin and costs CPU that the OBU needs.  Without ``nice`` the workers 
 sending loop's core away during its bursts: 1,000 RVs verified, p99 17.3 ms with one
 worker and 27.9 ms with two.
 
-What is left of the lateness is the sending loop itself: every RV's frame of a 10 Hz
-tick is due at the same instant and goes out one ``sendto`` after the other, about 7 us
-each on an idle machine (``hil.transport.udp``'s send through asyncio-dgram; the bare
-transport's ``sendto`` takes 3.5 us), so the p99 frame of a 1,000-frame burst leaves
-7 ms late before any contention, 13.5 ms with the OBU verifying beside it.
+The rest of the lateness was the sending loop itself: every RV frame of a 10 Hz tick is
+due at the same instant, and asyncio-dgram's send took 7 us a frame (its drained event
+awaited after each), so the p99 frame of a 1,000-frame burst left 7 ms late before any
+contention.  :meth:`hil.transport.Sender.send_many` puts a burst onto the datagram
+transport back to back (3.5 us a frame); after it, with one worker (same bench, rows
+where the rest of the machine used under 5 % of a core)::
+
+    RVs   verify  workers  RVE late p99/max ms  RVE CPU %  socket loss  tick p99 ms
+    1000  on      1          7.4 /  10.9         24 + 34    0            77.9
+    1000  signed  1          7.2 /  10.7         26 + 34    0            75.1
+    1000  on      0        110.9 / 125.3         75 + 0     0            80.3
+
+Under foreign load the niced worker is the one that loses: with a VM test taking a
+whole core meanwhile, 1,000 RVs verified gave 137 waited batches (the longest 429 ms)
+and seconds of lateness, as the inline path did (4.5 s, signed, with the same load).
+Nothing on 2 cores keeps 10,000 signed BSMs/s, their verification and a third busy
+process on time; a benchmark run must have the machine to itself.
 """
 
 from __future__ import annotations

@@ -25,9 +25,14 @@ the envelope alone).  A list (``--verify off,on``, or ``both``) runs every mode 
 cell, one after the other in the same run, and prints each mode's tick p99 and OBU CPU as a
 ratio to the ``off`` row of its cell.  ``--verify`` alone means ``on``.
 
+``--sign-workers 0,2`` (signed modes): one row per value of ``rve run --sign-workers``
+(0: the RVE signs in its sending loop; N: N worker processes sign ahead of the schedule,
+:mod:`rve.signahead`); ``RVE CPU %`` is then the sending process's and its workers'
+(``main+workers``), and the row gives the batches the loop had to wait for.
+
     python bench/obu_load.py [--json] [--rvs 100,250,500] [--per 0,50] [--predictors hgp,ca]
                              [--seconds 15] [--capture | --keep DIR]
-                             [--verify [off,on,signed|both]]
+                             [--verify [off,on,signed|both]] [--sign-workers 0,2]
 
 Target (issue 6): 500 RVs with hgp at PER 50 %: no socket loss and tick p99 <= 50 ms.
 With --verify the same target holds for the verifying OBU.
@@ -39,6 +44,7 @@ import argparse
 import asyncio
 import json
 import os
+import resource
 import subprocess
 import sys
 import tempfile
@@ -67,6 +73,12 @@ def machine_busy_seconds() -> float:
 def cpu_seconds(pid: int) -> float:
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def children_cpu_seconds() -> float:
+    """CPU-seconds of this process's children that have ended and been waited for."""
+    use = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return use.ru_utime + use.ru_stime
 
 
 MODES = ("off", "on", "signed")
@@ -115,7 +127,7 @@ class WebClients:
 
 def measure(n: int, per: float, predictor: str, seconds: float, capture: bool,
             verify: str = "off", web_clients: int | None = None,
-            keep: Path | None = None) -> dict:
+            keep: Path | None = None, sign_workers: int | None = None) -> dict:
     ports = free_ports()
     web_port = None
     if web_clients is not None:
@@ -150,15 +162,19 @@ def measure(n: int, per: float, predictor: str, seconds: float, capture: bool,
             args.to, args.host_to = ("127.0.0.1", ports[0]), ("127.0.0.1", ports[1])
             args.progress = False
             args.sign = str(pki_dir) if pki_dir is not None else None
+            if sign_workers is not None:
+                args.sign_workers = sign_workers
             the_plan = plan(ring_table(n, seconds), ChannelConfig(per=per / 100.0), 1)
             late: list[float] = []
             cpu0, wall0 = cpu_seconds(obu.pid), time.monotonic()
             rve_cpu0, busy0 = time.process_time(), machine_busy_seconds()
+            workers0 = children_cpu_seconds()  # the signing workers, reaped by replay()
             clients = WebClients(web_clients or 0, web_port) if web_port else None
             if clients is not None:
                 clients.__enter__()
             counts = asyncio.run(replay(args, the_plan, late))
             rve_cpu1, busy1 = time.process_time(), machine_busy_seconds()
+            workers_cpu = children_cpu_seconds() - workers0
             cpu1, wall1 = cpu_seconds(obu.pid), time.monotonic()
             _, err = obu.communicate(timeout=120)
             if clients is not None:
@@ -188,12 +204,17 @@ def measure(n: int, per: float, predictor: str, seconds: float, capture: bool,
             "signed_with_certificate": counts.get("with_certificate", 0),
             "signed_per_s": round(counts.get("signed", 0) / wall, 1),
             "rve_cpu_percent": round(100.0 * (rve_cpu1 - rve_cpu0) / wall, 1),
+            "sign_workers": (args.sign_workers if pki_dir is not None else None),
+            "rve_workers_cpu_percent": round(100.0 * workers_cpu / wall, 1),
+            **{k: counts[k] for k in ("sign_ahead_batches", "sign_ahead_waits",
+                                      "sign_ahead_wait_ms_max") if k in counts},
             "rve_late_ms_p99": round(float(np.percentile(late_ms, 99)), 3),
             "rve_late_ms_max": round(float(late_ms.max()), 3),
             # everything else the machine ran meanwhile, in % of one core (contention)
             # (clamped at 0: the counters tick in 1/CLK_TCK s, so a quiet machine reads ±1 tick)
             "other_cpu_percent": max(0.0, round(100.0 * ((busy1 - busy0) - (cpu1 - cpu0)
-                                                         - (rve_cpu1 - rve_cpu0)) / wall, 1))}
+                                                         - (rve_cpu1 - rve_cpu0)
+                                                         - workers_cpu) / wall, 1))}
 
 
 def verify_modes(spec: str) -> list[str]:
@@ -254,16 +275,22 @@ def main(argv: list[str] | None = None) -> int:
                     help="the OBU serves its live view (obu run --web) and K clients read "
                          "every state it pushes, one row per K (e.g. 0,10: the same cell "
                          "with none and with ten connected, in one run)")
+    ap.add_argument("--sign-workers", metavar="N,...",
+                    help="rve run --sign-workers for the signed modes, one row per value "
+                         "(default: rve run's own)")
     args = ap.parse_args(argv)
+    workers = ([int(v) for v in args.sign_workers.split(",")] if args.sign_workers
+               else [None])
     webs = ([int(v) for v in args.web_clients.split(",")] if args.web_clients else [None])
     rows = []
     for n in (int(v) for v in args.rvs.split(",")):
         for per in (float(v) for v in args.per.split(",")):
             for p in args.predictors.split(","):
                 for mode in args.verify:
-                    for k in webs:
-                        rows.append(measure(n, per, p, args.seconds, args.capture, mode, k,
-                                            args.keep))
+                    for w in (workers if mode != "off" else [None]):
+                        for k in webs:
+                            rows.append(measure(n, per, p, args.seconds, args.capture, mode,
+                                                k, args.keep, w))
                     if not args.json:
                         print(f"  done {n} RVs PER {per:g} % {p} verify {mode}",
                               file=sys.stderr)
@@ -274,22 +301,26 @@ def main(argv: list[str] | None = None) -> int:
     print("OBU under load: UDP on 127.0.0.1, 10 Hz per RV, one OBU process"
           + (" writing its capture" if args.capture else "")
           + f", {os.cpu_count()} CPUs (other CPU %: what the rest of the machine ran meanwhile)")
-    print(f"{'RVs':>5} {'PER %':>6} {'predictor':>9} {'verify':>6} {'socket loss':>13} "
+    print(f"{'RVs':>5} {'PER %':>6} {'predictor':>9} {'verify':>6} {'wk':>2} "
+          f"{'socket loss':>13} "
           f"{'tick p50':>9} {'tick p99':>9} {'tick max':>9} {'misses':>7} {'CPU %':>6} "
-          f"{'p99 x':>6} {'CPU x':>6} {'RVE CPU %':>9} {'RVE late p99/max ms':>19} "
-          f"{'signed/s':>8} {'other CPU %':>11}  verdicts")
+          f"{'p99 x':>6} {'CPU x':>6} {'RVE CPU %':>11} {'RVE late p99/max ms':>19} "
+          f"{'signed/s':>8} {'waits':>5} {'other CPU %':>11}  verdicts")
     for r in rows:
         ratios = r.get("vs_off", {})
         tick_x, cpu_x = ratios.get("tick_p99_ratio"), ratios.get("cpu_ratio")
-        print(f"{r['rvs']:>5} {r['per']:>6g} {r['predictor']:>9} {r['verify']:>6} "
+        wk = "-" if r["sign_workers"] is None else r["sign_workers"]
+        rve_cpu = f"{r['rve_cpu_percent']:.0f}+{r['rve_workers_cpu_percent']:.0f}"
+        print(f"{r['rvs']:>5} {r['per']:>6g} {r['predictor']:>9} {r['verify']:>6} {wk:>2} "
               f"{r['socket_loss']:>6}/{r['frames_sent']:<6} {r['tick_ms_p50']:>9.1f} "
               f"{r['tick_ms_p99']:>9.1f} {r['tick_ms_max']:>9.1f} {r['deadline_misses']:>7} "
               f"{r['cpu_percent']:>6.1f} "
               f"{f'{tick_x:.2f}' if tick_x is not None else '-':>6} "
               f"{f'{cpu_x:.2f}' if cpu_x is not None else '-':>6} "
-              f"{r['rve_cpu_percent']:>9.1f} "
+              f"{rve_cpu:>11} "
               f"{r['rve_late_ms_p99']:>9.2f}/{r['rve_late_ms_max']:<9.2f} "
-              f"{r['signed_per_s']:>8.0f} {r['other_cpu_percent']:>11.1f}  {_verify_cell(r)}")
+              f"{r['signed_per_s']:>8.0f} {r.get('sign_ahead_waits', '-'):>5} "
+              f"{r['other_cpu_percent']:>11.1f}  {_verify_cell(r)}")
     for r in rows:
         if r["web_clients"] is not None:
             print(f"  web clients {r['web_clients']:>2} ({r['rvs']} RVs PER {r['per']:g} % "

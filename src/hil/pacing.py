@@ -21,14 +21,16 @@ class Pacer:
     """Deadlines for dataset times; :meth:`wait` returns how late the wake-up was (s)."""
 
     def __init__(self, t0: float, speed: float | None = 1.0, spin_s: float = 0.002,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic,
+                 start: float | None = None) -> None:
+        """``t0`` is due at ``start`` on ``clock`` (default: now)."""
         if speed is not None and not speed > 0.0:
             raise ValueError(f"speed factor must be > 0, got {speed}")
         self.t0 = t0
         self.speed = speed
         self.spin_s = spin_s
         self.clock = clock
-        self.start = clock()
+        self.start = clock() if start is None else start
 
     def deadline(self, t: float) -> float:
         """Monotonic-clock time at which dataset time ``t`` is due."""

@@ -21,7 +21,8 @@ DEFAULTS = {
     "jitter": 0.0, "seed": 0, "speed": 1.0, "asap": False, "capture": None, "overwrite": False,
     "duration": None, "host": None, "trip": None, "ieee1609": False, "distance": False,
     "can_interface": "virtual", "can_channel": None, "can_fd": False, "progress": True,
-    "idm_host": None, "sign": None, "framing": None, "attack": None,
+    "idm_host": None, "sign": None, "sign_workers": 1, "sign_lookahead": 1.0,
+    "framing": None, "attack": None,
     "host_bus": False, "host_can_interface": "virtual", "host_can_channel": None,
     "host_can_fd": False, "radar_can_channel": None, "nmea": None,
     "vehicle": "toyota-rav4-2017", "dbc": None, "gnss_noise": 0.5, "gnss_latency": 100.0,
@@ -74,6 +75,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="sign every RV's BSM as IEEE 1609.2 SignedData with a pseudonym "
                         "certificate of PKI_DIR (rve pki init); the host channel stays "
                         "unsigned")
+    p.add_argument("--sign-workers", type=_count, metavar="N",
+                   help="sign in N worker processes ahead of the schedule (rve.signahead; "
+                        "0: in the sending loop; --asap and --attack runs always do that) "
+                        f"(default {DEFAULTS['sign_workers']})")
+    p.add_argument("--sign-lookahead", type=positive, metavar="S",
+                   help="how far ahead of the sending loop the workers sign, s of "
+                        f"schedule (default {DEFAULTS['sign_lookahead']:g})")
     p.add_argument("--attack", action="append", metavar="KIND[:KEY=VALUE,...]",
                    help=f"add a misbehaving sender (repeatable): {', '.join(KINDS)}; each "
                         "message is labelled in rve.schedule.jsonl (catc.attacks has the "
@@ -82,6 +90,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     _add_host_bus_arguments(p)
     p.add_argument("--no-progress", dest="progress", action="store_false", default=None,
                    help="no progress line on stderr")
+
+
+def _count(text: str) -> int:
+    """A whole number >= 0 (argparse type)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
+    return value
 
 
 def _add_host_bus_arguments(p: argparse.ArgumentParser) -> None:

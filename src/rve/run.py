@@ -60,6 +60,7 @@ from rve.framing import encode_event, framing_of
 from rve.hostbus import HostBus, HostBusPlan, ReplayClock, prepare
 from rve.options import DEFAULTS, add_arguments
 from rve.progress import Progress
+from rve.signahead import sign_ahead
 from rve.signing import Signer, make_signer
 
 __all__ = ["DEFAULTS", "add_arguments", "replay", "run"]
@@ -105,6 +106,7 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
     signer = signer or make_signer(args, the_plan)
     attacking = Attacking(args, the_plan, signer, framing) if args.attack else None
     attacks = attacking.attacks if attacking else None
+    ahead = sign_ahead(args, the_plan, signer, framing, host_bus)
     cap = Capture(Path(args.capture), the_plan, args) if args.capture else None
     on_frame = cap.canlog.on_message_received if cap is not None and cap.canlog else None
     hostbus = None
@@ -124,6 +126,17 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
             with contextlib.suppress(OSError):  # err, not a capture file, ends the run
                 cap.end(*schema.failed(err))
         raise
+    try:  # the first lookahead window signed before the clock starts
+        start = ahead.prime() if ahead is not None else None
+    except BaseException as err:
+        ahead.close()
+        await sender.aclose()
+        if hostbus is not None:
+            hostbus.close()
+        if cap is not None:
+            with contextlib.suppress(OSError):
+                cap.end(*schema.failed(err))
+        raise
     stop = asyncio.Event()
     stopped_by: list[str] = []  # the signal that stopped the replay
     loop = asyncio.get_running_loop()
@@ -134,7 +147,7 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
     events = the_plan.events
     tids = [temp_id(v) for v in the_plan.vehicles]
     t0 = float(events["time"][0]) if len(events) else 0.0
-    pacer = Pacer(t0, None if args.asap else args.speed)
+    pacer = Pacer(t0, None if args.asap else args.speed, start=start)
     clock = ReplayClock(pacer) if hostbus is not None else None
     host_task = None
     if hostbus is not None:
@@ -150,40 +163,54 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
     counts = {"sent": 0, "dropped": 0, "host": 0}
     times = events["time"].tolist()
     try:
-        i, n = 0, len(events)
+        i, n, tick = 0, len(events), -1
         while i < n and not stop.is_set():
             due = times[i]
             j = i
             while j < n and times[j] == due:
                 j += 1
             batch = events[i:j]
+            tick += 1
             # Encode before the deadline, send at it, write the capture after the sends.
-            gen_unix = time.time() + max(0.0, pacer.deadline(due) - pacer.clock())
-            encoded = [(None, None) if host_bus and ev["host"] else
-                       encode_event(ev, the_plan, framing, signer, gen_unix, attacks)
-                       for ev in batch]
-            frames = [frame for frame, _ in encoded]
-            extra = attacking.frames(batch, frames, gen_unix) if attacking else []
+            if ahead is None:
+                gen_unix = time.time() + max(0.0, pacer.deadline(due) - pacer.clock())
+                encoded = [(None, None) if host_bus and ev["host"] else
+                           encode_event(ev, the_plan, framing, signer, gen_unix, attacks)
+                           for ev in batch]
+                frames = [frame for frame, _ in encoded]
+                extra = attacking.frames(batch, frames, gen_unix) if attacking else []
+            else:  # signed by the workers: this tick's frames are taken at its deadline
+                ahead.fill(due)
+                extra = []
             if clock is not None:
                 clock.advance(due)
             await pacer.wait(due)
+            if ahead is not None:
+                encoded = await ahead.take(tick)
+                frames = [frame for frame, _ in encoded]
             deadline = pacer.deadline(due)
 
             def stamp() -> tuple[float, float]:
                 return (time.time(), 0.0 if args.asap
                         else max(0.0, pacer.clock() - deadline))  # noqa: B023
 
-            sent_at, extra_at = [], []
-            for ev, frame in zip(batch, frames, strict=True):
-                if ev["host"] and len(extra_at) < len(extra):  # attackers before the host
+            sent_at: list = [None] * len(frames)
+            extra_at: list = []
+            burst: list[int] = []  # the RV frames due before the next host frame
+            for k, (ev, frame) in enumerate(zip(batch, frames, strict=True)):
+                if not ev["host"]:
+                    if frame is not None:
+                        burst.append(k)
+                    continue
+                await _send_burst(sender, frames, burst, sent_at, stamp)
+                if len(extra_at) < len(extra):  # attackers before the host
                     for attack_frame, _ in extra:
                         await sender.send(attack_frame)
                         extra_at.append(stamp())
-                if frame is None:
-                    sent_at.append(None)
-                    continue
-                await (sender.send_host(frame) if ev["host"] else sender.send(frame))
-                sent_at.append(stamp())
+                if frame is not None:
+                    await sender.send_host(frame)
+                    sent_at[k] = stamp()
+            await _send_burst(sender, frames, burst, sent_at, stamp)
             for attack_frame, _ in extra[len(extra_at):]:
                 await sender.send(attack_frame)
                 extra_at.append(stamp())
@@ -219,6 +246,11 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
         if hostbus is not None:
             hostbus.close()
             counts.update(hostbus.counts)
+        if ahead is not None:
+            ahead.close()
+            counts.update(ahead.counts)
+        if signer is not None:
+            counts.update(signer.counts)
         await sender.aclose()
         last = float(events["time"][min(i, len(events) - 1)]) if len(events) else 0.0
         progress.update(last, counts["sent"], counts["dropped"], 0.0, final=True)
@@ -226,16 +258,31 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
             try:  # every file flushed and closed, even after a failed write
                 cap.end(*ending, sent=counts["sent"], dropped=counts["dropped"],
                         host_frames=counts["host"],
-                        **(dict(hostbus.counts) if hostbus is not None else {}))
+                        **(dict(hostbus.counts) if hostbus is not None else {}),
+                        **{k: counts[k] for k in _SIGN_COUNTS if k in counts})
             except OSError:
                 if not raised:
                     raise
     counts["interrupted"] = int(stop.is_set())
-    if signer is not None:
-        counts.update(signer.counts)
     if attacking is not None:
         counts.update(attacking.counts)
     return counts
+
+
+#: the signing counters of the summary and rve.end.json (rve.signing, rve.signahead)
+_SIGN_COUNTS = ("signed", "with_certificate", "sign_ahead_batches", "sign_ahead_waits",
+                "sign_ahead_wait_ms_max")
+
+
+async def _send_burst(sender: Any, frames: list[bytes | None], burst: list[int],
+                      sent_at: list, stamp: Any) -> None:
+    """Send the RV frames ``burst`` indexes back to back, each one's ``stamp()`` into
+    ``sent_at``; empties ``burst``."""
+    if burst:
+        stamps = await sender.send_many([frames[k] for k in burst], stamp)
+        for k, when in zip(burst, stamps, strict=True):
+            sent_at[k] = when
+        burst.clear()
 
 
 def _account(ev: Any, frame: bytes | None, when: tuple[float, float] | None,
@@ -289,7 +336,7 @@ def run(args: argparse.Namespace) -> int:
     print(json.dumps({"sent": counts["sent"], "dropped": counts["dropped"],
                       "host_frames": counts["host"], "interrupted": bool(counts["interrupted"]),
                       "vehicles": len(the_plan.vehicles) - 1, "host": the_plan.host_id,
-                      **{k: counts[k] for k in ("signed", "with_certificate",
+                      **{k: counts[k] for k in (*_SIGN_COUNTS,
                                                  "attack_frames", "host_can_frames",
                                                  "host_can_errors", "nmea_epochs",
                                                  "gnss_dropped", "nmea_full")

@@ -38,6 +38,9 @@ class Signer:
                              f"--vehicles {rvs})")
         self.to_time64 = unix_to_time64
         others = [i for i in range(n_vehicles) if i != host_index]
+        #: each RV's pseudonym: its index in the PKI (what a signing worker is told) and
+        #: its (certificate, key)
+        self.pseudonym = {v: k for k, v in enumerate(others)}
         self.identity = {v: pki.pseudonyms[k] for k, v in enumerate(others)}
         self.last_cert: dict = {}
         self.owed: set = set()
@@ -59,12 +62,9 @@ class Signer:
                    else "the PKI has no foreign/ directory)"))
         return ident
 
-    def sign(self, vehicle: object, frame: bytes, t: float, gen_unix: float,
-             identity: tuple[Any, Any] | None = None) -> bytes:
-        """``frame`` signed by ``vehicle``'s pseudonym (or ``identity``, an attacker's
-        (certificate, key), for a fabricated sender ``vehicle``)."""
-        from catc.security import sign_bsm
-
+    def decide(self, vehicle: object, t: float) -> bool:
+        """Whether ``vehicle``'s BSM of data time ``t`` carries the full certificate (else
+        its digest); counts it as signed.  Called in schedule order, once per frame."""
         if vehicle not in self.heard:  # a new sender: everybody else owes its certificate
             self.heard.add(vehicle)
             self.owed.update(v for v in self.heard if v != vehicle)
@@ -74,8 +74,17 @@ class Signer:
             self.last_cert[vehicle] = t
             self.owed.discard(vehicle)
             self.counts["with_certificate"] += 1
-        cert, key = identity or self.identity[vehicle]
         self.counts["signed"] += 1
+        return full
+
+    def sign(self, vehicle: object, frame: bytes, t: float, gen_unix: float,
+             identity: tuple[Any, Any] | None = None) -> bytes:
+        """``frame`` signed by ``vehicle``'s pseudonym (or ``identity``, an attacker's
+        (certificate, key), for a fabricated sender ``vehicle``)."""
+        from catc.security import sign_bsm
+
+        full = self.decide(vehicle, t)
+        cert, key = identity or self.identity[vehicle]
         return sign_bsm(frame, key, cert, self.to_time64(gen_unix), include_cert=full)
 
 

@@ -39,9 +39,10 @@ import abc
 import asyncio
 import importlib
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from types import TracebackType
-from typing import Literal, Self
+from typing import Literal, Self, TypeVar
 
 __all__ = [
     "KINDS",
@@ -96,6 +97,9 @@ class Received:
     arrival: float = 0.0
 
 
+T = TypeVar("T")
+
+
 class Sender(abc.ABC):
     """The RVE side of a transport.  ``stats`` counts ``frames`` and ``bytes`` sent per
     channel and the errors by reason (see the backend)."""
@@ -109,6 +113,15 @@ class Sender(abc.ABC):
     @abc.abstractmethod
     async def send_host(self, frame: bytes) -> None:
         """Send one frame of the host vehicle's state on its own channel."""
+
+    async def send_many(self, frames: Sequence[bytes], stamp: Callable[[], T]) -> list[T]:
+        """Send RV frames in order, back to back, each ``stamp()``-ed as soon as it left
+        (a backend may do it faster than :meth:`send` one by one)."""
+        out = []
+        for frame in frames:
+            await self.send(frame)
+            out.append(stamp())
+        return out
 
     @abc.abstractmethod
     async def aclose(self) -> None:

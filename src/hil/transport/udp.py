@@ -34,12 +34,13 @@ import select
 import socket
 import struct
 import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Literal
 
 import asyncio_dgram
 
-from hil.transport import Receiver, Sender, TransportError, count, os_reason
+from hil.transport import Receiver, Sender, T, TransportError, count, os_reason
 
 __all__ = ["DEFAULT_MAX_FRAME", "DEFAULT_RCVBUF", "open_receiver", "open_sender"]
 
@@ -117,6 +118,30 @@ class UdpSender(Sender):
 
     async def send_host(self, frame: bytes) -> None:
         await self._send("host", frame)
+
+    async def send_many(self, frames: Sequence[bytes], stamp: Callable[[], T]) -> list[T]:
+        """The RV frames of a burst straight onto the socket's datagram transport, with
+        no await between them (asyncio-dgram's send awaits its drained event after each,
+        7 us a frame against 3.5: 1,000 RVs due at one instant); then its drained event
+        once, as its send would."""
+        if self._closed:
+            raise TransportError("udp sender is closed")
+        stream = self._streams["rv"]
+        transport = getattr(stream, "_transport", None)
+        drained = getattr(stream, "_drained", None)
+        if transport is None or drained is None or transport.is_closing():
+            return await super().send_many(frames, stamp)
+        self._collect(stream)
+        out = []
+        for frame in frames:
+            transport.sendto(frame)  # an OSError comes back through the stream: _collect
+            out.append(stamp())
+        self._collect(stream)
+        count(self.stats, "frames", len(frames))
+        count(self.stats, "bytes", sum(map(len, frames)))
+        count(self.stats, "rv", len(frames))
+        await drained.wait()
+        return out
 
     async def aclose(self) -> None:
         if self._closed:

@@ -200,9 +200,9 @@ class HostEstimator:
         self._accel_t: dict[str, float] = {}
         #: (local t, e, n, heading) of the dead-reckoned path, newest last
         self.history: deque[tuple[float, float, float, float | None]] = deque()
-        #: (local t, wheel speed) for the speed scale; (fix arrival, GNSS speed)
+        #: (local t, wheel speed) for the speed scale; the newest GNSS speed
         self.wheel: deque[tuple[float, float]] = deque()
-        self.gnss_speed: deque[tuple[float, float]] = deque()
+        self.gnss_speed: float | None = None
         #: the odometry path (never pulled by a fix), and at each fix of the window:
         #: (arrival, fix e, fix n, odometry e, n, velocity e, n) for the latency fit
         self.oe = self.on = 0.0
@@ -244,9 +244,7 @@ class HostEstimator:
         if fix.alt_m is not None:
             self.elev = fix.alt_m
         if fix.speed_mps is not None:
-            self.gnss_speed.append((t, fix.speed_mps))
-            while self.gnss_speed and self.gnss_speed[0][0] < t - LAG_WINDOW_S:
-                self.gnss_speed.popleft()
+            self.gnss_speed = fix.speed_mps
         std = _fix_std(fix, self.config.fix_std_m)
         if self.frame is None:
             self.frame = EnuFrame(fix.lat, fix.lon, 0.0)
@@ -371,8 +369,8 @@ class HostEstimator:
         if v is not None and self.wheel and self.t is not None \
                 and self.t - self.wheel[-1][0] <= CAN_FRESH_S:
             return float(v), True
-        if self.gnss_speed:
-            return self.gnss_speed[-1][1], False
+        if self.gnss_speed is not None:
+            return self.gnss_speed, False
         return (None if v is None else float(v)), v is not None
 
     def _at(self, when: float) -> tuple[float, float, float | None]:

@@ -175,7 +175,7 @@ def add_vehicle_arguments(p: argparse.ArgumentParser) -> None:
                         "channel's PATH[@BAUD], or rve's on a pty")
     p.add_argument("--vehicle-can-channel", metavar="NAME",
                    help="the car's CAN channel, e.g. can0 (default per interface: can0, "
-                        "catc-vehicle, 239.74.163.3)")
+                        "catc-vehicle, 239.74.163.3, /dev/ttyACM0)")
     p.add_argument("--time-scale", type=positive, metavar="N",
                    help="with --host-source vehicle: the car's time runs N times this "
                         "process's (a bench replaying the vehicle side at rve run --speed "
@@ -192,4 +192,5 @@ def add_vehicle_arguments(p: argparse.ArgumentParser) -> None:
                         "--host-bus's; the comma2k19 u-blox's is 0.2)")
     p.add_argument("--gnss-latency", type=latency, metavar="auto|S",
                    help="how old a fix's position is when it arrives: auto (default: "
-                        "measured against the wheel speed) or S seconds (0..1)")
+                        "0.1 s until a fit against the wheel-speed odometry is sure) or S "
+                        "seconds (0..1)")

@@ -520,14 +520,18 @@ def test_gpsd_reads_the_nmea_from_a_pty_and_so_does_our_obu(tmp_path):
     # our OBU through the same gpsd: a fix per epoch, a tick per 100 ms of GNSS time, the
     # host within the fixes' noise (1.5 m) of the truth
     counters = json.loads((tmp_path / "obu" / "obu.counters.json").read_text())
-    assert counters["gnss_gpsd_fixes"] >= 0.8 * summary["nmea_epochs"]
     assert counters["slcan_frames"] > 1_000 and counters.get("can_bad_checksum", 0) == 0
     truth = {round(r["utc"], 1): r for r in sent}
     ticks = _lines(tmp_path / "obu" / "obu.vehicle.jsonl")
-    assert len(ticks) >= 50
+    assert len(ticks) >= 40
+    # the OBU starts after gpsd (on a loaded machine, seconds later): every fix gpsd had
+    # from its first one on reached it
+    since = [r for r in sent if r["utc"] >= ticks[0]["t_gnss"] - 0.15]
+    assert len(since) >= 40 and counters["gnss_gpsd_fixes"] >= len(since) - 2, \
+        (len(since), counters["gnss_gpsd_fixes"])
     off = [distance_m(v["lat"], v["lon"], truth[k]["true_lat"], truth[k]["true_lon"])
            for v in ticks if (k := round(v["t_gnss"], 1)) in truth]
-    assert len(off) >= 50 and float(np.percentile(off, 95)) < 3.0, off
+    assert len(off) >= 40 and float(np.percentile(off, 95)) < 3.0, off
 
 
 @pytest.mark.socketcan

@@ -481,3 +481,47 @@ def test_frames_that_contradict_the_senders_trajectory_are_dropped() -> None:
     assert (c["inconsistent"], c["jump"], c["duplicate"], c["accepted"]) == (2, 1, 1, 2)
     assert snap.rv(0).y == pytest.approx(52.0, abs=1e-3)
     assert _accounted(c)
+
+
+# --- verification deferred (issue 30: verify on demand) ---------------------------------------
+
+
+def _braking_lead(k: int) -> BSM:
+    t = k * 0.1
+    v_rv = max(0.0, 25.0 - 6.0 * t)
+    y_rv = 40.0 + (25.0 * t - 3.0 * t * t if v_rv > 0 else 25.0**2 / 12.0)
+    return bsm(7, t, 0.0, y_rv, v_rv, 0.0, accel=-6.0 if v_rv > 0 else 0.0)
+
+
+def test_no_warning_rests_on_an_unverified_message() -> None:
+    # the braking lead of the test above, its messages unverified until k = 10: drawn
+    # (a row, flagged) but unseen by the applications; once a message of it is verified
+    # the warnings come at once
+    m = cam(apps=True)
+    firsts = []
+    for k in range(20):
+        rv = _braking_lead(k)
+        unverified = {id(rv)} if k < 10 else frozenset()
+        snap = m.step(k * 0.1, north(k * 0.1, 0.0, 25.0, tid=99), [rv], unverified)
+        assert len(snap) == 1 and snap.ids[0] == 7
+        assert bool(snap.verified[0]) == (k >= 10) == snap.rv(0).verified
+        if snap.warnings:
+            firsts.append(k)
+    assert firsts and firsts[0] == 10
+
+
+def test_unverified_rows_hide_from_the_apps_and_not_from_the_verified() -> None:
+    # an unverified RV braking hard beside a verified braking lead: the lead warns, the
+    # unverified one never (an unverified message can neither raise nor suppress one)
+    m = cam(apps=True)
+    seen = set()
+    for k in range(15):
+        t = k * 0.1
+        lead = _braking_lead(k)
+        ghost = bsm(66, t, 1.0, 30.0 + 25.0 * t - 4.0 * t * t, 25.0 - 8.0 * t, 0.0,
+                    accel=-8.0)
+        snap = m.step(t, north(t, 0.0, 25.0, tid=99), [lead, ghost], {id(ghost)})
+        seen |= {w.rv_id for w in snap.warnings}
+        rows = dict(zip(snap.ids.tolist(), snap.verified.tolist(), strict=True))
+        assert rows == {7: True, 66: False}
+    assert seen == {7}

@@ -15,6 +15,7 @@ from catc.apps.bsw import BswConfig, blind_spot
 from catc.apps.eebl import EeblConfig, eebl
 from catc.apps.events import AppEvent, AppWarning, WarningMonitor
 from catc.apps.fcw import FcwConfig, forward_collision
+from catc.cam._snapshot import rows_of
 
 __all__ = ["APPS", "AppEvent", "AppWarning", "AppsConfig", "SafetyApps"]
 
@@ -59,6 +60,9 @@ class SafetyApps:
     def __call__(self, snap) -> tuple[list[AppWarning], list[AppEvent]]:
         c = self.config
         found: list[AppWarning] = []
+        verified = getattr(snap, "verified", None)
+        if verified is not None and not verified.all():  # unverified rows: not seen
+            snap = rows_of(snap, verified)
         if self._fcw:
             found += forward_collision(snap, c.fcw)
         if self._eebl:

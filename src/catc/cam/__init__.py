@@ -86,7 +86,7 @@ and their admission (steps 1-3), ``_snapshot.py`` what a step returns, ``_config
 from catc.cam._clock import SecMarkClock, message_time
 from catc.cam._config import CamConfig
 from catc.cam._map import ContextAwareMap
-from catc.cam._snapshot import HostEstimate, MapSnapshot, RvView
+from catc.cam._snapshot import HostEstimate, MapSnapshot, RvView, rows_of
 from catc.cam._tracks import COUNTERS, EVENT_HARD_BRAKING, HARD_BRAKING_DECEL, hard_braking
 
 __all__ = [
@@ -101,4 +101,5 @@ __all__ = [
     "SecMarkClock",
     "hard_braking",
     "message_time",
+    "rows_of",
 ]

@@ -11,7 +11,7 @@ trails of the RVs ahead (step 6); the tracks and their admission are
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping, Sequence, Set
 from itertools import chain
 
 import numpy as np
@@ -85,9 +85,16 @@ class ContextAwareMap:
         self.counters["dropped"] = self.counters.get("dropped", 0) + 1
         return True
 
-    def step(self, now: float, host: BSM, messages: Sequence[BSM] = ()) -> MapSnapshot:
+    def step(self, now: float, host: BSM, messages: Sequence[BSM] = (),
+             unverified: Set[int] = frozenset()) -> MapSnapshot:
         """Advance the map to ``now`` (s, the HV's dataset time) with the HV state ``host``
-        and the RV messages received since the last step; see the module docstring."""
+        and the RV messages received since the last step; see the module docstring.
+
+        ``unverified``: the ``id()`` of each message in ``messages`` whose signature was not
+        verified (an OBU verifying on demand defers some).  A track remembers whether its
+        latest accepted message was verified (the snapshot's ``verified`` column), and the
+        applications see only verified rows: no warning rests on an unverified message.
+        Empty (the default): every message counts as verified."""
         if not math.isfinite(now) or now <= self._host_t:
             raise ValueError(f"step times must increase: {now} after {self._host_t}")
         if host.lat is None or host.lon is None:
@@ -101,8 +108,13 @@ class ContextAwareMap:
                                      [host.lon] + [m.lon for _, m in usable])
         host_est = self._update_host(now, host, ex[0], ny[0])
         self._table.note_host_position(now, ex[0], ny[0])
-        for (t, m), x, y in zip(usable, ex[1:], ny[1:], strict=True):
-            self._table.apply(now, t, m, x, y, host_est, self.frame)
+        apply, frame = self._table.apply, self.frame
+        if unverified:
+            for (t, m), x, y in zip(usable, ex[1:], ny[1:], strict=True):
+                apply(now, t, m, x, y, host_est, frame, id(m) not in unverified)
+        else:
+            for (t, m), x, y in zip(usable, ex[1:], ny[1:], strict=True):
+                apply(now, t, m, x, y, host_est, frame)
         self._table.evict_stale(now)
         snap = self._snapshot(now, host_est)
         if self.apps is not None:
@@ -146,15 +158,14 @@ class ContextAwareMap:
         # column after column (numpy converts a flat list fastest; filling arrays row by
         # row costs far more), then sliced into the columns.
         rows: list[tuple] = []
-        flags: list[tuple[bool, bool]] = []  # (fresh, hard braking)
+        flags: list[tuple[bool, bool, bool]] = []  # (fresh, hard braking, verified)
         for tr, ex, ey in zip(tracks, x.tolist(), y.tolist(), strict=True):
             accel, length, width, hard = tr.bsm_values
             rows.append((now - tr.t, accel, length, width))
-            flags.append((tr.fresh_at == now, hard))
+            flags.append((tr.fresh_at == now, hard, tr.verified))
             tr.est_x, tr.est_y = ex, ey
         age, accel, length, width = _flat_columns(rows, np.float64).reshape(4, n)
-        fresh_hard = _flat_columns(flags, np.bool_)
-        fresh, hard = fresh_hard[:n], fresh_hard[n:]
+        fresh, hard, verified = _flat_columns(flags, np.bool_).reshape(3, n)
         ids = np.array([tr.temp_id for tr in tracks], dtype=np.int64)
         # now and later, x, y and heading: the rows of both paths, each n long
         zone, predicted_zone = classify_paths(
@@ -170,8 +181,8 @@ class ContextAwareMap:
             age=age, fresh=fresh, lane=np.rint(zone.d / c.classify.w_lane).astype(np.int64),
             zone=zone, pred_x=pred_x, pred_y=pred_y, pred_heading=pred_heading,
             pred_speed=pred_speed, predicted_zone=predicted_zone, hard_braking=hard,
-            length=length, width=width, on_trail=on_trail, counters=dict(self.counters),
-            warnings=(), events=())
+            length=length, width=width, on_trail=on_trail, verified=verified,
+            counters=dict(self.counters), warnings=(), events=())
 
     def _trail_lanes(self, tracks: list[Track], zone: ZoneArrays, host: HostEstimate
                      ) -> tuple[ZoneArrays, npt.NDArray[np.bool_]]:

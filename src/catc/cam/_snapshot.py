@@ -62,6 +62,7 @@ class RvView:
     hard_braking: bool
     length: float
     width: float
+    verified: bool = True
 
 
 @dataclass(frozen=True, eq=False)
@@ -75,7 +76,9 @@ class MapSnapshot:
     ...), ``age`` (s since the last BSM was generated), ``fresh`` (a BSM was applied in
     this step), ``lane`` (lane offset, positive right), ``zone`` / ``predicted_zone``
     (:class:`catc.classify.ZoneArrays`), ``pred_x, pred_y, pred_heading, pred_speed`` (at
-    ``t + horizon_s``), ``hard_braking``, ``length, width`` (m).
+    ``t + horizon_s``), ``hard_braking``, ``length, width`` (m), ``on_trail``,
+    ``verified`` (the RV's latest accepted BSM was verified, or verification is not
+    deferred: see ``ContextAwareMap.step``; the applications see only verified rows).
     """
 
     t: float
@@ -104,6 +107,8 @@ class MapSnapshot:
     width: Array
     #: The RV's offsets were measured along its own trail (lane estimation).
     on_trail: npt.NDArray[np.bool_]
+    #: The RV's latest accepted BSM was verified (False: deferred, not verified yet).
+    verified: npt.NDArray[np.bool_]
     counters: Mapping[str, int]
     #: Per-tick warning conditions: (app, rv_id) pairs whose condition holds now.
     warnings: tuple[tuple[str, int], ...] = ()
@@ -128,7 +133,7 @@ class MapSnapshot:
                       float(self.age[i]), bool(self.fresh[i]), int(self.lane[i]),
                       self.zone.zone(i), float(self.pred_x[i]), float(self.pred_y[i]),
                       self.predicted_zone.zone(i), bool(self.hard_braking[i]),
-                      float(self.length[i]), float(self.width[i]))
+                      float(self.length[i]), float(self.width[i]), bool(self.verified[i]))
 
     def __iter__(self) -> Iterator[RvView]:
         return (self.rv(i) for i in range(len(self)))
@@ -143,6 +148,26 @@ def snapshot_of(**values) -> MapSnapshot:
     snap = object.__new__(MapSnapshot)
     snap.__dict__.update(values)
     return snap
+
+
+#: The per-row fields of a MapSnapshot (sliced by :func:`rows_of`).
+_ROW_FIELDS = ("ids", "x", "y", "speed", "heading", "accel", "var_x", "var_y", "age", "fresh",
+               "lane", "pred_x", "pred_y", "pred_heading", "pred_speed", "hard_braking",
+               "length", "width", "on_trail", "verified")
+
+
+def rows_of(snap: MapSnapshot, mask: npt.NDArray[np.bool_]) -> MapSnapshot:
+    """The snapshot with only the rows where ``mask`` is True (the HV, counters, warnings
+    and events as they are): what the applications see when some rows are unverified."""
+    idx = np.flatnonzero(mask)
+    values = dict(snap.__dict__)
+    for name in _ROW_FIELDS:
+        values[name] = values[name][idx]
+    values["source"] = tuple(snap.source[i] for i in idx.tolist())
+    for name in ("zone", "predicted_zone"):
+        z = values[name]
+        values[name] = type(z)(*(getattr(z, f)[idx] for f in z.__dataclass_fields__))
+    return snapshot_of(**values)
 
 
 def with_apps(snap: MapSnapshot, warnings: tuple, events: tuple) -> MapSnapshot:

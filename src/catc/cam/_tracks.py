@@ -84,6 +84,8 @@ class Track:
     bsm_values: tuple[float, float, float, bool] = (0.0, 0.0, 0.0, False)
     est_x: float = math.nan  # last estimate, for the table-full policy
     est_y: float = math.nan
+    #: Its latest accepted message was verified (or verification was not deferred).
+    verified: bool = True
 
 
 class TrackTable:
@@ -155,9 +157,10 @@ class TrackTable:
         return out
 
     def apply(self, now: float, t: float, m: BSM, x: float, y: float, host: HostEstimate,
-              frame: EnuFrame) -> None:
+              frame: EnuFrame, verified: bool = True) -> None:
         """Admit the BSM ``m`` generated at ``t`` at ENU ``(x, y)`` of ``frame`` to its track,
-        or start one, or count why not (steps 2 and 3)."""
+        or start one, or count why not (steps 2 and 3).  ``verified``: its signature was
+        verified (False: deferred), kept as the track's :attr:`Track.verified`."""
         c = self.config
         cnt = self.counters
         tr = self.tracks.get(m.temp_id)
@@ -173,7 +176,7 @@ class TrackTable:
                 cnt["table_full"] += 1
                 return
             self._new_track(now, t, m, x, y, frame,
-                            c.confirm_near if near else c.confirm_after)
+                            c.confirm_near if near else c.confirm_after, verified)
             return
         if t == tr.t:
             cnt["duplicate"] += 1
@@ -203,13 +206,15 @@ class TrackTable:
             cnt["reacquired"] += 1
             confirmed = tr.need <= 1
             self.forget(m.temp_id)
-            self._new_track(now, t, m, x, y, frame, 1 if confirmed else c.confirm_after)
+            self._new_track(now, t, m, x, y, frame, 1 if confirmed else c.confirm_after,
+                            verified)
             return
         tr.alt = None
         if m.path_history is not None and t - tr.t > _PH_GAP_S:
             self._fill_history(tr.history, m, t, tr.t, frame)
         tr.bsm, tr.t, tr.x, tr.y = m, t, x, y
         tr.bsm_values = self._bsm_values(m)
+        tr.verified = verified
         tr.accepted += 1
         tr.fresh_at = now
         tr.predictor.update(_observation(t, x, y, m))
@@ -287,7 +292,7 @@ class TrackTable:
         return self.tracks.pop(temp_id, None) is not None
 
     def _new_track(self, now: float, t: float, m: BSM, x: float, y: float, frame: EnuFrame,
-                   need: int = 1) -> None:
+                   need: int = 1, verified: bool = True) -> None:
         pred = self._new_predictor()
         pred.update(_observation(t, x, y, m))
         hist = ConcisePathHistory(tolerance_m=self.config.ph_tolerance_m)
@@ -296,7 +301,7 @@ class TrackTable:
         hist.add(t, x, y)
         self.tracks[m.temp_id] = Track(m.temp_id, pred, hist, m, t, x, y, t, fresh_at=now,
                                          est_x=x, est_y=y, bsm_values=self._bsm_values(m),
-                                         need=need)
+                                         need=need, verified=verified)
         self.tracks[m.temp_id].recent.append((t, x, y))
         self.counters["accepted"] += 1
         self.counters["tracks_created"] += 1

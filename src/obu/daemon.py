@@ -139,7 +139,7 @@ class Obu:
         spare = self.host_arrival + TICK_S - time.time() - 2.0 * step_s - PRE_TICK_SPARE_S
         budget = min(PRE_TICK_MAX_S, spare)
         if budget > 0.0:
-            self.counters["verify_pre_tick"] += self.frames.work(
+            self.counters["ondemand_pre_tick"] += self.frames.work(
                 time.monotonic() + budget, time.monotonic)
 
     def _publish(self, snap: MapSnapshot, host: BSM) -> None:
@@ -191,7 +191,7 @@ class Obu:
             len(self.frames.pending), self.cam.tentative, self.cam.counters,
             transport_stats, None if self.gc is None else self.gc.counters())
         if self.frames.queue is not None:  # verify on demand: still waiting
-            out["verify_queue"] = len(self.frames.queue)
+            out["ondemand_queue"] = len(self.frames.queue)
         if self.web is not None:
             out.update({f"web_{k}": v for k, v in self.web.counters.items()})
         if self.vehicle is not None:

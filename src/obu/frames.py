@@ -18,17 +18,19 @@ checked for misbehavior, counted, and an RV message queued for its tick.
   (:meth:`catc.security.Verifier.check`; a failure is rejected as above), then its
   priority from the last snapshot.  An urgent one (a new RV, hard braking, in the path
   within the FCW's reach, in a side lane, an unverified track ahead) is verified at once
-  (``verify_at_once``); the others are deferred (``verify_deferred``) into a
+  (``ondemand_at_once``); the others are deferred (``ondemand_deferred``) into a
   :class:`~catc.security.ondemand.VerifyQueue` that :meth:`Frames.work` verifies in the
   OBU's idle time and before each tick.  A deferred frame verified before its tick is
-  trusted there (``verify_deferred_ok``; one that fails is rejected and never stepped);
-  one its tick reaches unverified is stepped as such (``verify_unverified_stepped``; the
+  trusted there (``ondemand_deferred_ok``; one that fails is rejected and never stepped);
+  one its tick reaches unverified is stepped as such (``ondemand_unverified_stepped``; the
   CAM flags its track and no application sees it), and when it is verified later and
-  fails (``verify_late_rejected``) its sender's track is dropped, unless it was a replay:
+  fails (``ondemand_late_rejected``) its sender's track is dropped, unless it was a replay:
   a copy of what the sender said.  The queue drops the oldest low-threat frames under
-  overload (``verify_skipped``); ``verify_ok`` and ``verify_<reason>`` count every
-  verdict, at once or later.  So an RV frame is a decode error, or ``verify_ok +
-  verify_rejected + verify_skipped`` + the frames still queued (``verify_queue``).
+  overload (``ondemand_skipped``); ``verify_ok`` and ``verify_<reason>`` count every
+  verdict, at once or later (the ``ondemand_`` counters are each frame's way, kept apart
+  from the ``verify_`` ones, which name verdicts only).  So an RV frame is a decode
+  error, or ``verify_ok + verify_rejected + ondemand_skipped`` + the frames still queued
+  (``ondemand_queue``).
   Misbehavior detection sees a deferred frame only once verified before its tick.
 * Replays never reach misbehavior detection, in either mode.  A ``replay`` is a copy of
   a message already accepted, octet for octet or re-encoded: what it says about its
@@ -75,12 +77,6 @@ from obu.host import HostGate
 from obu.status import RateLimitedLog
 
 __all__ = ["Deferred", "Frames", "claimed_sender", "verifier"]
-
-#: The counters of verify on demand (each frame's way through; not verdicts).
-ONDEMAND_COUNTERS = ("verify_at_once", "verify_deferred", "verify_deferred_ok",
-                     "verify_deferred_failed", "verify_late_ok", "verify_late_rejected",
-                     "verify_late_tracks_dropped", "verify_skipped",
-                     "verify_unverified_stepped", "verify_queue")
 
 
 def verifier(args: argparse.Namespace) -> Any:
@@ -253,18 +249,18 @@ class Frames:
         if priority.urgent:
             v = self.verifier.finish(checked)
             self._count(v.reason)
-            self.counters[f"verify_urgent_{priority.why}"] += 1
+            self.counters[f"ondemand_urgent_{priority.why}"] += 1
             if not v.ok:
                 self._reject(rx_unix, data, frame, v.reason, "at-once")
                 return None
-            self.counters["verify_at_once"] += 1
+            self.counters["ondemand_at_once"] += 1
             self.last_signer = v.signer_digest
             if self.mbd is not None and self.misbehaves(bsm, rx_unix, data, "ok"):
                 return None
             self.pending.append(bsm)
             self.pending_rx[id(bsm)] = (rx_unix, data, "ok", "at-once")
             return None
-        self.counters["verify_deferred"] += 1
+        self.counters["ondemand_deferred"] += 1
         entry = Deferred(bsm, checked, rx_unix, data)
         self.pending.append(bsm)
         self.pending_rx[id(bsm)] = (rx_unix, data, None, "deferred")
@@ -274,22 +270,27 @@ class Frames:
 
     def _skipped(self, entry: Deferred) -> None:
         """The queue dropped ``entry`` unverified (overload, or too old)."""
-        self.counters["verify_skipped"] += 1
-        self.deferred.pop(id(entry.bsm), None)  # its tick steps it unverified
+        self.counters["ondemand_skipped"] += 1
+        # still in self.deferred: its tick steps it unverified
         if self.cap is not None:
             self.cap.late(entry.rx_unix, entry.bsm, "skipped", entry.stepped)
 
-    def work(self, until: float, clock: Callable[[], float]) -> int:
+    def work(self, until: float, clock: Callable[[], float],
+             now_unix: float | None = None) -> int:
         """Verify queued frames, most threatening first, until ``clock()`` reaches
-        ``until`` or the queue is empty; how many were verified."""
-        n = 0
-        queue, finish = self.queue, self._finish
+        ``until`` or the queue is empty; how many were verified.  ``now_unix`` (default
+        the wall clock) ages the queue: frames received too long before are dropped."""
+        queue = self.queue
         if queue is None or not len(queue):
             return 0
-        import time
+        if now_unix is None:
+            import time
 
+            now_unix = time.time()
+        n = 0
+        finish = self._finish
         while clock() < until:
-            entry = queue.pop(time.time())
+            entry = queue.pop(now_unix)
             if entry is None:
                 break
             finish(entry)
@@ -303,22 +304,22 @@ class Frames:
         bsm, key = e.bsm, id(e.bsm)
         if e.stepped:  # its tick took it unverified: too late to keep it out
             if v.ok:
-                self.counters["verify_deferred_ok"] += 1
-                self.counters["verify_late_ok"] += 1
+                self.counters["ondemand_deferred_ok"] += 1
+                self.counters["ondemand_late_ok"] += 1
             else:
-                self.counters["verify_deferred_failed"] += 1
-                self.counters["verify_late_rejected"] += 1
+                self.counters["ondemand_deferred_failed"] += 1
+                self.counters["ondemand_late_rejected"] += 1
                 self.log("late", f"an RV frame stepped unverified does not verify: "
                                  f"{v.reason}" + ("" if v.reason == "replay" else
                                                   "; its sender's track dropped"))
                 # a replay is a copy of what its sender said: no reason to drop the track
                 if v.reason != "replay" and self.drop(bsm.temp_id):
-                    self.counters["verify_late_tracks_dropped"] += 1
+                    self.counters["ondemand_late_tracks_dropped"] += 1
             if self.cap is not None:
                 self.cap.late(e.rx_unix, bsm, v.reason, True)
             return
         self.deferred.pop(key, None)
-        self.counters["verify_deferred_ok" if v.ok else "verify_deferred_failed"] += 1
+        self.counters["ondemand_deferred_ok" if v.ok else "ondemand_deferred_failed"] += 1
         if key not in self.pending_rx:  # quarantined meanwhile (--mbd): gone already
             return
         if v.ok:
@@ -350,7 +351,7 @@ class Frames:
             if entry is not None:
                 entry.stepped = True
                 out.append(id(m))
-        self.counters["verify_unverified_stepped"] += len(out)
+        self.counters["ondemand_unverified_stepped"] += len(out)
         return frozenset(out)
 
     def new_snapshot(self, snap: Any) -> None:

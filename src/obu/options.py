@@ -138,7 +138,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--verify-queue", type=int, metavar="N",
                    help="verify on demand: most frames waiting for their ECDSA; beyond, the "
                         "oldest of the lowest threat are dropped unverified and counted "
-                        "(verify_skipped) (default 2000)")
+                        "(ondemand_skipped) (default 2000)")
     p.add_argument("--signatures", choices=("strict", "standard"),
                    help="signature encodings --verify accepts: strict (default: rSig x-only "
                         "and low s, the one form nobody can derive from another) or "

@@ -190,7 +190,7 @@ async def serve(args: argparse.Namespace) -> dict:
                 break
             if not inbox and pending is None:
                 if queue is not None and len(queue):  # verify on demand: idle time
-                    obu.counters["verify_idle"] += obu.frames.work(
+                    obu.counters["ondemand_idle"] += obu.frames.work(
                         time.monotonic() + IDLE_SLICE_S, time.monotonic)
                     await asyncio.sleep(0)  # read the sockets between slices
                 else:

@@ -130,7 +130,8 @@ class WebClients:
 
 def measure(n: int, per: float, predictor: str, seconds: float, capture: bool,
             verify: str = "off", web_clients: int | None = None,
-            keep: Path | None = None, sign_workers: int | None = None) -> dict:
+            keep: Path | None = None, sign_workers: int | None = None,
+            verify_workers: int | None = None) -> dict:
     ports = free_ports()
     web_port = None
     if web_clients is not None:
@@ -157,6 +158,8 @@ def measure(n: int, per: float, predictor: str, seconds: float, capture: bool,
         if verify in ("on", "on-demand"):  # on: every frame verified on arrival
             cmd += ["--verify", "enforce", "--trust", str(pki_dir), "--verify-policy",
                     "all" if verify == "on" else "on-demand"]
+            if verify == "on-demand" and verify_workers is not None:
+                cmd += ["--verify-workers", str(verify_workers)]
         obu = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                                text=True)
         try:
@@ -195,12 +198,15 @@ def measure(n: int, per: float, predictor: str, seconds: float, capture: bool,
     wall = wall1 - wall0
     late_ms = np.array(late) * 1e3 if late else np.zeros(1)
     return {"rvs": n, "per": per, "predictor": predictor, "verify": verify,
+            "verify_workers": verify_workers,
             "web_clients": web_clients,
             "web_states_received": clients.received if web_port else None,
             "socket_loss": sent - got, "frames_sent": sent,
             "tick_ms_p50": c.get("tick_ms_p50"), "tick_ms_p99": c.get("tick_ms_p99"),
             "tick_ms_max": c.get("tick_ms_max"), "deadline_misses": c.get("deadline_misses", 0),
             "ticks": c.get("ticks", 0),
+            # arrival to decision: the RV messages', and the host frames' (a tick's own)
+            "lag_ms_p99": c.get("lag_ms_p99"), "host_lag_ms_p99": c.get("host_lag_ms_p99"),
             "cpu_percent": round(100.0 * (cpu1 - cpu0) / wall, 1),
             "verify_counters": {k: v for k, v in sorted(c.items())
                                 if k.startswith("verify_")},
@@ -256,7 +262,8 @@ def _ondemand_cell(r: dict) -> str:
     c = r.get("ondemand_counters") or {}
     if not c:
         return "-"
-    return (f"{c.get('ondemand_at_once', 0)}+{c.get('ondemand_deferred_ok', 0)}/"
+    vw = "" if r.get("verify_workers") is None else f"w{r['verify_workers']} "
+    return (f"{vw}{c.get('ondemand_at_once', 0)}+{c.get('ondemand_deferred_ok', 0)}/"
             f"{c.get('ondemand_deferred', 0)}/{c.get('ondemand_skipped', 0)}/"
             f"{c.get('ondemand_unverified_stepped', 0)}")
 
@@ -293,6 +300,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="the OBU serves its live view (obu run --web) and K clients read "
                          "every state it pushes, one row per K (e.g. 0,10: the same cell "
                          "with none and with ten connected, in one run)")
+    ap.add_argument("--verify-workers", metavar="N,...",
+                    help="obu run --verify-workers for the on-demand mode, one row per value "
+                         "(default: obu run's own, 1)")
     ap.add_argument("--sign-workers", metavar="N,...",
                     help="rve run --sign-workers for the signed modes, one row per value "
                          "(default: rve run's own)")
@@ -300,15 +310,18 @@ def main(argv: list[str] | None = None) -> int:
     workers = ([int(v) for v in args.sign_workers.split(",")] if args.sign_workers
                else [None])
     webs = ([int(v) for v in args.web_clients.split(",")] if args.web_clients else [None])
+    vworkers = ([int(v) for v in args.verify_workers.split(",")] if args.verify_workers
+                else [None])
     rows = []
     for n in (int(v) for v in args.rvs.split(",")):
         for per in (float(v) for v in args.per.split(",")):
             for p in args.predictors.split(","):
                 for mode in args.verify:
                     for w in (workers if mode != "off" else [None]):
-                        for k in webs:
-                            rows.append(measure(n, per, p, args.seconds, args.capture, mode,
-                                                k, args.keep, w))
+                        for vw in (vworkers if mode == "on-demand" else [None]):
+                            for k in webs:
+                                rows.append(measure(n, per, p, args.seconds, args.capture,
+                                                    mode, k, args.keep, w, vw))
                     if not args.json:
                         print(f"  done {n} RVs PER {per:g} % {p} verify {mode}",
                               file=sys.stderr)

@@ -342,6 +342,34 @@ def test_on_demand_run_warns_on_verified_data_only_and_its_counters_add_up(tmp_p
     assert s["attacks"]["ghost"]["warnings"] == {} and s["attacks"]["ghost"]["accepted"] == 0
 
 
+def test_a_worker_process_verifies_the_queue(pki) -> None:
+    import time
+
+    from catc.security import time64_to_unix
+    from obu.ecdsa_worker import EcdsaWorker
+
+    rx = time64_to_unix(NOW)
+    fr, cap, dropped = _on_demand_frames(pki, _snapshot([(0x12345678, -200.0, 0.0, 2, 0,
+                                                          False)]))
+    fr.worker = EcdsaWorker(1)
+    try:
+        for k in range(100):
+            fr.take("rv", _signed(pki, k, NOW + 20 + k, bad=k in (7, 70)), rx)
+        fr.unverified(fr.pending[:50])  # the first half is stepped before the answers
+        deadline = time.monotonic() + 30.0
+        while fr.queued() and time.monotonic() < deadline:
+            fr.pump(rx)
+            time.sleep(0.01)
+        c = fr.counters
+        assert c["ondemand_worker"] == 100 and fr.queued() == 0
+        assert c["verify_ok"] == 98 and c["verify_bad-signature"] == 2
+        assert c["ondemand_late_rejected"] == 1 and dropped == [0x12345678]  # 7: stepped
+        assert [(s, d["verdict"]) for s, d in cap.frames] == [("rejected", "bad-signature")]
+        assert len(fr.pending) == 99  # 70 never reaches its tick
+    finally:
+        fr.drain()
+
+
 # --- the OBU's tick, in process: a track fed by unverified frames cannot warn --------------
 
 
@@ -366,6 +394,7 @@ def test_a_track_fed_only_by_unverified_frames_raises_no_warning(tmp_path, zones
     args = argparse.Namespace(**DEFAULTS)
     args.verify, args.trust, args.predictor = "enforce", str(tmp_path / "pki"), "ca"
     args.warnings = str(tmp_path / "warnings.jsonl")
+    args.verify_workers = 0  # nothing verifies the queue: no worker process either
     obu = Obu(args)
     if zones == "tight":  # nothing is urgent but a new RV or hard braking
         tight = OnDemandConfig(ahead_min_m=0.0, ahead_margin_m=-1e6, side_behind_m=-1e6,

@@ -28,7 +28,7 @@ __all__ = ["PRE_TICK_MAX_S", "PRE_TICK_SPARE_S", "Obu"]
 #: Verify on demand: before a step, queued frames are verified for at most this long (s) ...
 PRE_TICK_MAX_S = 0.02
 #: ... and only while the tick can still be decided within its period of its host
-#: frame's arrival, with twice the recent step time and this much to spare (s).
+#: frame's arrival, with the longest of the last 20 steps and this much to spare (s).
 PRE_TICK_SPARE_S = 0.01
 
 
@@ -87,6 +87,7 @@ class Obu:
         the host frame's, for a message that came before it) to the decision is kept
         (:class:`obu.status.Lags`)."""
         now = self.clock(host.sec_mark)
+        self.frames.pump()  # what the workers verified counts at this tick
         self._verify_before_step()
         due = self.frames.due(now, self.cam.config.max_future_s)
         unverified = self.frames.unverified(due)
@@ -136,7 +137,7 @@ class Obu:
         if queue is None or not len(queue):
             return
         step_s = max(islice(reversed(self.status.step_ms), 20), default=0.0) / 1000.0
-        spare = self.host_arrival + TICK_S - time.time() - 2.0 * step_s - PRE_TICK_SPARE_S
+        spare = self.host_arrival + TICK_S - time.time() - step_s - PRE_TICK_SPARE_S
         budget = min(PRE_TICK_MAX_S, spare)
         if budget > 0.0:
             self.counters["ondemand_pre_tick"] += self.frames.work(
@@ -191,7 +192,7 @@ class Obu:
             len(self.frames.pending), self.cam.tentative, self.cam.counters,
             transport_stats, None if self.gc is None else self.gc.counters())
         if self.frames.queue is not None:  # verify on demand: still waiting
-            out["ondemand_queue"] = len(self.frames.queue)
+            out["ondemand_queue"] = self.frames.queued()
         if self.web is not None:
             out.update({f"web_{k}": v for k, v in self.web.counters.items()})
         if self.vehicle is not None:
@@ -211,6 +212,7 @@ class Obu:
             except OSError as err:
                 failure = write_error(err, self.args.warnings)
         if self.cap is None:
+            self.frames.drain()  # the workers stop
             if failure is not None:
                 raise failure
             return

@@ -76,7 +76,11 @@ from obu.capture import ObuCapture, Received
 from obu.host import HostGate
 from obu.status import RateLimitedLog
 
-__all__ = ["Deferred", "Frames", "claimed_sender", "verifier"]
+__all__ = ["PUMP_EVERY", "Deferred", "Frames", "claimed_sender", "verifier"]
+
+#: With ``--verify-workers``: the workers are fed (and their answers settled) at least
+#: every this many deferred frames, besides once per pass of the event loop and per tick.
+PUMP_EVERY = 128
 
 
 def verifier(args: argparse.Namespace) -> Any:
@@ -168,6 +172,12 @@ class Frames:
                                      on_skip=self._skipped)
             self.threats = Threats(None)
             self.new_threats = Threats
+        #: --verify-workers: processes that run the queue's ECDSA (obu.ecdsa_worker)
+        self.worker: Any = None
+        if self.queue is not None and getattr(args, "verify_workers", 0):
+            from obu.ecdsa_worker import EcdsaWorker
+
+            self.worker = EcdsaWorker(args.verify_workers)
 
     def take(self, channel: str, data: bytes, rx_unix: float) -> BSM | None:
         """One received frame on ``channel`` (``rv`` or ``host``): an RV message is
@@ -266,6 +276,8 @@ class Frames:
         self.pending_rx[id(bsm)] = (rx_unix, data, None, "deferred")
         self.deferred[id(bsm)] = entry
         self.queue.push(entry, priority.threat, rx_unix)
+        if self.worker is not None and not self.counters["ondemand_deferred"] % PUMP_EVERY:
+            self.pump(rx_unix)  # a busy OBU seldom gets back to its loop: keep them fed
         return None
 
     def _skipped(self, entry: Deferred) -> None:
@@ -297,9 +309,31 @@ class Frames:
             n += 1
         return n
 
-    def _finish(self, e: Deferred) -> None:
-        """The ECDSA of a queued frame, and what follows from its verdict."""
-        v = self.verifier.finish(e.checked)
+    def pump(self, now_unix: float | None = None) -> None:
+        """With ``--verify-workers``: settle the frames the workers have verified, and
+        send them more from the queue (never blocks)."""
+        worker = self.worker
+        if worker is None:
+            return
+        settle = self.verifier.settle
+        n = 0
+        for entry, ok in worker.done():
+            self._finish(entry, settle(entry.checked, ok))
+            n += 1
+        self.counters["ondemand_worker"] += n
+        if len(self.queue):
+            if now_unix is None:
+                import time
+
+                now_unix = time.time()
+            self.counters["ondemand_sent"] += worker.feed(lambda: self.queue.pop(now_unix))
+        self.counters["ondemand_pumps"] += 1
+
+    def _finish(self, e: Deferred, v: Any = None) -> None:
+        """The ECDSA of a queued frame (``v``: its verdict when a worker made it), and
+        what follows from its verdict."""
+        if v is None:
+            v = self.verifier.finish(e.checked)
         self._count(v.reason)
         bsm, key = e.bsm, id(e.bsm)
         if e.stepped:  # its tick took it unverified: too late to keep it out
@@ -359,11 +393,22 @@ class Frames:
         if self.queue is not None:
             self.threats = self.new_threats(snap)
 
+    def queued(self) -> int:
+        """Frames waiting for their ECDSA: in the queue, and sent to a worker."""
+        if self.queue is None:
+            return 0
+        return len(self.queue) + (len(self.worker.in_flight()) if self.worker else 0)
+
     def drain(self) -> None:
-        """The run ends: what is still queued is recorded ``pending``."""
+        """The run ends: what is still queued (or at a worker) is recorded ``pending``;
+        the workers stop."""
         if self.queue is None:
             return
-        for e in self.queue.drain():
+        left = self.queue.drain()
+        if self.worker is not None:
+            left += self.worker.in_flight()
+            self.worker.close()
+        for e in left:
             if self.cap is not None:
                 self.cap.late(e.rx_unix, e.bsm, "pending", e.stepped)
 

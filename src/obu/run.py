@@ -188,15 +188,18 @@ async def serve(args: argparse.Namespace) -> dict:
                     and time.monotonic() - last > args.idle_exit:
                 done = "idle"
                 break
+            if queue is not None:  # verify on demand: the workers' answers, and more work
+                obu.frames.pump()
             if not inbox and pending is None:
                 if queue is not None and len(queue):  # verify on demand: idle time
                     obu.counters["ondemand_idle"] += obu.frames.work(
                         time.monotonic() + IDLE_SLICE_S, time.monotonic)
                     await asyncio.sleep(0)  # read the sockets between slices
-                else:
+                else:  # (batches at the workers: back soon for their answers)
                     arrived.clear()
                     with contextlib.suppress(TimeoutError):
-                        await asyncio.wait_for(arrived.wait(), 0.2)
+                        await asyncio.wait_for(arrived.wait(), 0.005 if queue is not None
+                                               and obu.frames.queued() else 0.2)
             while inbox or pending is not None:
                 if pending is None:
                     host = obu.frame(*inbox.popleft())
@@ -308,6 +311,9 @@ def run(args: argparse.Namespace) -> int:
         return 2
     if getattr(args, "verify_queue", 1) < 1:
         print("obu run: --verify-queue must be >= 1", file=sys.stderr)
+        return 2
+    if getattr(args, "verify_workers", 0) < 0:
+        print("obu run: --verify-workers must be >= 0", file=sys.stderr)
         return 2
     try:
         check(args.predictor)

@@ -76,6 +76,12 @@ class Checked:
     def signer_digest(self) -> bytes | None:
         return self.unwrapped.signer_digest
 
+    def ecdsa_input(self) -> tuple[ec.EllipticCurvePublicKey, bytes | None, bytes]:
+        """What the message's ECDSA verification takes: the signer's key, the r || s
+        signature and the digest (for a verification elsewhere: another process)."""
+        return (self.signer.key, self.unwrapped.signature,
+                sha256(self.tbs_hash + self.signer.cert_hash))
+
 
 def _whole_certificate(raw: bytes) -> Certificate:
     cert, used = parse_certificate(raw)
@@ -307,11 +313,19 @@ class Verifier:
         """The message's ECDSA verification, after :meth:`check` (at once, or later: the
         checks stay those of its receive time).  A copy accepted since its check is a
         ``replay``: two copies may wait at once, and only the first is the message."""
+        u = checked.unwrapped
+        if self.replays is not None and self.replays.seen(checked.tbs_hash, checked.now_us):
+            return Verdict(False, "replay", u.frame, u.signer_digest)
+        return self.settle(checked, verify_digest(*checked.ecdsa_input()))
+
+    def settle(self, checked: Checked, ecdsa_ok: bool) -> Verdict:
+        """:meth:`finish` with the ECDSA verification's outcome ``ecdsa_ok`` made
+        elsewhere (:meth:`Checked.ecdsa_input`): the replay check again, then the verdict,
+        and an accepted message into the replay cache."""
         u, tbs_hash = checked.unwrapped, checked.tbs_hash
         if self.replays is not None and self.replays.seen(tbs_hash, checked.now_us):
             return Verdict(False, "replay", u.frame, u.signer_digest)
-        signer = checked.signer
-        if not verify_digest(signer.key, u.signature, sha256(tbs_hash + signer.cert_hash)):
+        if not ecdsa_ok:
             return Verdict(False, "bad-signature", u.frame, u.signer_digest)
         if self.replays is not None:  # only now: a forgery must not make the real one a replay
             self.replays.add(tbs_hash, checked.generation_us + self.max_age_us,

@@ -133,8 +133,7 @@ class Obu:
         """Verify on demand: work the queue before the step, within its budget
         (:data:`PRE_TICK_MAX_S`, :data:`PRE_TICK_SPARE_S`): the frames it reaches are
         trusted at this tick."""
-        queue = self.frames.queue
-        if queue is None or not len(queue):
+        if not self.frames.queued():
             return
         step_s = max(islice(reversed(self.status.step_ms), 20), default=0.0) / 1000.0
         spare = self.host_arrival + TICK_S - time.time() - step_s - PRE_TICK_SPARE_S

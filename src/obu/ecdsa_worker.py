@@ -38,6 +38,8 @@ BATCH = 128
 #: Batches in flight per worker: one at work, two in the pipe (within its 64 kB buffer,
 #: so that sending never blocks).
 IN_FLIGHT = 3
+#: The longest wait for a worker to start (s).
+STARTUP_S = 30.0
 #: How much lower a worker's priority is than the OBU's (os.nice).
 _NICE = 10
 
@@ -50,7 +52,7 @@ def _verify(batch: list[tuple[bytes, bytes | None, bytes]]) -> list[bool]:
 
     from catc.security._crypto import verify_digest
 
-    out = []
+    out: list[bool] = []
     for point, signature, digest in batch:
         key = _keys.get(point)
         if key is None:
@@ -91,6 +93,13 @@ class EcdsaWorker:
         #: per worker, the batches sent and not answered yet, oldest first
         self.flying: list[deque[list[Any]]] = [deque() for _ in range(workers)]
         self._points: dict[bytes, bytes] = {}  # signer cert hash -> its key's point
+        for conn in self.conns:  # started and warm (imports done) before the first frame:
+            conn.send([])  # else the first ticks' frames wait for it, unverified
+        for conn in self.conns:
+            if not conn.poll(STARTUP_S):
+                self.close()
+                raise RuntimeError(f"the ECDSA worker did not start within {STARTUP_S} s")
+            conn.recv()
 
     def _point(self, signer: Any) -> bytes:
         point = self._points.get(signer.cert_hash)
@@ -129,6 +138,13 @@ class EcdsaWorker:
         for conn, flying in zip(self.conns, self.flying, strict=True):
             while flying and conn.poll():
                 yield from zip(flying.popleft(), conn.recv(), strict=True)
+
+    def wait(self, timeout: float) -> bool:
+        """Wait up to ``timeout`` s for an answer; whether one came (False: none flies)."""
+        from multiprocessing.connection import wait
+
+        busy = [c for c, f in zip(self.conns, self.flying, strict=True) if f]
+        return bool(busy) and bool(wait(busy, max(0.0, timeout)))
 
     def in_flight(self) -> list[Any]:
         """The entries sent and not answered yet."""

@@ -290,23 +290,28 @@ class Frames:
     def work(self, until: float, clock: Callable[[], float],
              now_unix: float | None = None) -> int:
         """Verify queued frames, most threatening first, until ``clock()`` reaches
-        ``until`` or the queue is empty; how many were verified.  ``now_unix`` (default
-        the wall clock) ages the queue: frames received too long before are dropped."""
+        ``until`` or the queue is empty (and, with ``--verify-workers``, no batch is left
+        at a worker: its answers are waited for meanwhile); how many were verified here.
+        ``now_unix`` (default the wall clock) ages the queue: frames received too long
+        before are dropped."""
         queue = self.queue
-        if queue is None or not len(queue):
+        if queue is None or not self.queued():
             return 0
         if now_unix is None:
             import time
 
             now_unix = time.time()
         n = 0
-        finish = self._finish
-        while clock() < until:
+        finish, worker = self._finish, self.worker
+        while (left := until - clock()) > 0.0:
             entry = queue.pop(now_unix)
-            if entry is None:
+            if entry is not None:
+                finish(entry)
+                n += 1
+            elif worker is None or not worker.wait(left):
                 break
-            finish(entry)
-            n += 1
+            else:  # the queue is empty, a worker answers: those count now too
+                self.pump(now_unix)
         return n
 
     def pump(self, now_unix: float | None = None) -> None:

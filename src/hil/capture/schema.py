@@ -106,6 +106,7 @@ __all__ = [
     "track_columns",
     "track_rows",
     "truth",
+    "unverified",
     "verified_late",
 ]
 
@@ -337,12 +338,12 @@ def tick(snap: Any, host_sec_mark: int, step_ms: float, decided_unix: float
         "tracked": len(snap), "step_ms": round(step_ms, 3), "decided_unix": decided_unix,
         "warnings": [[w.app, hex_id(w.rv_id), round(w.range_m, 3),
                       _finite(w.threshold_m, 3), w.side] for w in snap.warnings],
-        **_unverified(snap)}
+        **unverified(snap)}
 
 
-def _unverified(snap: Any) -> dict[str, Any]:
-    """``unverified``: the RVs whose track no verified message fed last (the snapshot's
-    ``verified`` column, verify on demand); absent when there is none."""
+def unverified(snap: Any) -> dict[str, Any]:
+    """``unverified``: the RVs (hex ids) whose track no verified message fed last (the
+    snapshot's ``verified`` column, verify on demand); ``{}`` when there is none."""
     verified = getattr(snap, "verified", None)
     if verified is None or verified.all():
         return {}

@@ -139,10 +139,15 @@ def prepare_many(states: list[WindowState]) -> list[tuple]:
         steps = np.diff(rel[:, 0, :n], axis=1)
         steps -= DT
         regular = (np.abs(steps).max(axis=1) <= 1e-6).tolist()
+        bank = None  # one configuration and bank: one cache for all
         for i, r, ok in zip(full, rel, regular, strict=True):
             s = states[i]
-            out[i] = (r, s.regular_bank() if ok and s.run >= n and not s.online_speed
-                      else None)
+            if ok and s.run >= n and not s.online_speed:
+                if bank is None:
+                    bank = s.regular_bank()
+                out[i] = (r, bank)
+            else:
+                out[i] = (r, None)
     for i, s in enumerate(states):
         if out[i] is None:
             out[i] = s.prepare()
@@ -181,9 +186,10 @@ def forecast_batch(states: list[WindowState], counts: list[int]) -> list[Forecas
     c = states[0].config
     prepared = prepare_many(states)
     stale = []
+    every = c.reselect_every
     for i, s in enumerate(states):
         s.stats["forecasts"] += 1
-        if s.selection is None or s.since_selection >= c.reselect_every:
+        if s.selection is None or s.since_selection >= every:
             stale.append(i)
     if stale:
         select_batch([states[i] for i in stale], [prepared[i][0] for i in stale],
@@ -194,14 +200,21 @@ def forecast_batch(states: list[WindowState], counts: list[int]) -> list[Forecas
     out: list[Forecast | None] = [None] * len(states)
     groups: dict[tuple[int, int], list[int]] = {}
     for i, ((rel, _), count) in enumerate(zip(prepared, counts, strict=True)):
-        groups.setdefault((rel.shape[1], count), []).append(i)
+        key = (rel.shape[1], count)
+        group = groups.get(key)
+        if group is None:
+            group = groups[key] = []
+        group.append(i)
     for (_, count), members in groups.items():
         grid = forecast_grid(count)[0]
         direct = []
+        regular: list[int] = []
         for row, i in enumerate(members):
-            sel, cache = states[i].selection, prepared[i][1]
-            if c.slopes and not (sel.index is not None and cache is not None):
-                direct.append(row)
+            if c.slopes:
+                if states[i].selection.index is not None and prepared[i][1] is not None:
+                    regular.append(row)
+                else:
+                    direct.append(row)
         if len(direct) == len(members) <= _POSTERIOR_CHUNK:  # the usual case: one call
             rels = [prepared[i][0] for i in members]
             consts = [states[i].selection.consts for i in members]
@@ -209,17 +222,14 @@ def forecast_batch(states: list[WindowState], counts: list[int]) -> list[Forecas
         else:
             mean = np.empty((len(members), 2, count))
             var = np.empty((len(members), 2, count))
-            regular: list[int] = []
-            for row, i in enumerate(members):
-                s, rel, sel = states[i], prepared[i][0], states[i].selection
-                if not c.slopes:
+            if not c.slopes:
+                for row, i in enumerate(members):
+                    rel, sel = prepared[i][0], states[i].selection
                     tau = rel[0, :-1]
                     mean[row, 0], var[row, 0] = gp.posterior(tau, rel[1, :-1], grid,
                                                              sel.theta_s, c.noise_speed)
                     mean[row, 1], var[row, 1] = gp.posterior(tau, rel[2, :-1], grid,
                                                              sel.theta_h, c.noise_heading)
-                elif sel.index is not None and prepared[i][1] is not None:
-                    regular.append(row)
             if regular:
                 _regular_posteriors(states, prepared, members, regular, count, mean, var)
             for lo in range(0, len(direct), _POSTERIOR_CHUNK):

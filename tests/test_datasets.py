@@ -431,3 +431,34 @@ def test_savgol_derivative_equals_scipys_savgol_filter(n, window):
     want = savgol_filter(values, window, 2, deriv=1, delta=0.1, mode="interp")
     np.testing.assert_allclose(savgol_derivative(values, window, 2, 0.1), want,
                                rtol=0, atol=1e-9)
+
+
+# --- background traffic (dense:N:SPEC, issue 30) -------------------------------------------------
+
+
+def test_dense_spec_adds_background_roads_beside_the_host_and_keeps_the_trip():
+    from catc.datasets.background import ROAD_GAP_M
+    from hil.datasets import DatasetError, load_table
+
+    plain = load_table("scenario:highway-braking", None)
+    dense = load_table("dense:120:scenario:highway-braking", None)
+    bg = {k: tr for k, tr in dense.tracks.items() if k.startswith("bg")}
+    assert len(bg) == 120 and len(dense.tracks) == len(plain.tracks) + 120
+    for k, tr in plain.tracks.items():  # the trip itself is untouched
+        assert np.array_equal(dense.tracks[k].x, tr.x) and np.array_equal(dense.tracks[k].y, tr.y)
+    host = dense.tracks["host"]
+    frame = EnuFrame(*dense.origin)
+    ways = set()
+    for tr in bg.values():
+        assert np.hypot(tr.x - host.x, tr.y - host.y).min() >= ROAD_GAP_M - 1.0
+        # positions, speed and heading agree: 0.1 s steps of speed * DT along the heading
+        step = np.hypot(np.diff(tr.x), np.diff(tr.y))
+        assert np.allclose(step, tr.speed[1:] * DT, rtol=1e-9)
+        lat, lon, _ = frame.to_geodetic(tr.x, tr.y, 0.0)
+        assert np.allclose(lat, tr.lat) and np.allclose(lon, tr.lon)
+        ways.add(round(heading_diff_deg(float(tr.heading[0]), float(host.heading[0]))))
+    assert ways == {0, 180}  # one side the host's way, the other side the other way
+    for bad in ("dense:x:scenario:highway-braking", "dense:-3:scenario:highway-braking",
+                "dense:5"):
+        with pytest.raises(DatasetError, match="dense:N:SPEC"):
+            load_table(bad, None)

@@ -5,7 +5,9 @@ one file), optionally ending in ``?host=ID``, is every vehicle of that file's tr
 trip with one host (:mod:`catc.datasets.scene`; e.g.
 ``scene:ngsim:../shared/data/ngsim-i80-pairs?host=232``).  ``comma2k19:PATH`` is a
 comma2k19 segment (a folder of NumPy arrays): its host and the vehicles its radar
-tracked (:mod:`catc.datasets.comma2k19`).  This is the one place that
+tracked (:mod:`catc.datasets.comma2k19`).  ``dense:N:SPEC`` is every trip of SPEC with N
+background vehicles on straight roads parallel to the host's (:mod:`catc.datasets.background`;
+e.g. ``dense:1000:scenario:highway-braking``).  This is the one place that
 reads dataset files, for ``rve run`` and for every ``captures`` command; the parsers in
 :mod:`catc.datasets` work on their text, or on their bytes when the file is not text (an
 OBU ``.bin`` log) or the kind is ``ode``.
@@ -112,8 +114,35 @@ def load(spec: str) -> list[MobilityTable]:
     return [table for _, tables in load_files(spec) for table in tables]
 
 
+#: The prefix of a trip with background traffic: ``dense:N:SPEC``.
+DENSE = "dense:"
+
+
+def _dense(spec: str) -> list[tuple[Path, list[MobilityTable]]]:
+    """``dense:N:SPEC``: every trip of SPEC with N background vehicles on parallel roads
+    (:mod:`catc.datasets.background`)."""
+    count, sep, inner = spec[len(DENSE):].partition(":")
+    try:
+        n = int(count)
+    except ValueError:
+        n = -1
+    if not sep or n < 0:
+        raise DatasetError(f"dataset {spec!r}: dense:N:SPEC with N a vehicle count >= 0")
+    from catc.datasets.background import with_background
+
+    out = []
+    for f, tables in load_files(inner):
+        try:
+            out.append((f, [with_background(t, n) for t in tables]))
+        except ValueError as err:
+            raise DatasetError(f"dataset {spec!r}: {err}") from None
+    return out
+
+
 def load_files(spec: str) -> list[tuple[Path, list[MobilityTable]]]:
     """Like :func:`load`, grouped by the file each trip came from (only files that parsed)."""
+    if spec.startswith(DENSE):
+        return _dense(spec)
     if spec.startswith(SCENE):
         return _scene(spec)
     if spec.startswith(COMMA):

@@ -34,7 +34,7 @@ from catc.classify import (
 )
 from catc.geo import EnuFrame
 from catc.pathhistory import ConcisePathHistory
-from catc.predict import make_predictor, predict_columns, prepare
+from catc.predict import make_predictor, predict_columns, prepare, update_many
 from catc.predict.base import Observation, Predictor
 
 
@@ -115,6 +115,7 @@ class ContextAwareMap:
         else:
             for (t, m), x, y in zip(usable, ex[1:], ny[1:], strict=True):
                 apply(now, t, m, x, y, host_est, frame)
+        update_many(self._table.take_updates())
         self._table.evict_stale(now)
         snap = self._snapshot(now, host_est)
         if self.apps is not None:

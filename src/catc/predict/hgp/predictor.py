@@ -23,7 +23,7 @@ from catc.predict.hgp.reference import forecast_path, implausible, window_series
 from catc.predict.hgp.selection import select
 from catc.predict.hgp.stacked import forecast_batch
 from catc.predict.hgp.window import WindowPredictor, WindowState
-from catc.predict.kinematic import elapsed
+from catc.predict.kinematic import check_observation, elapsed
 
 #: One instance per distinct configuration, so that predictors can be grouped by identity.
 _CONFIGS: dict[HgpConfig, HgpConfig] = {}
@@ -202,20 +202,29 @@ def forecast_many_at(items: Iterable[tuple[object, float]]) -> int:
     """:func:`forecast_many` with a time per predictor: ``(predictor, t)`` pairs (predictors
     on different clocks, e.g. the vehicles of many trips replayed in lockstep)."""
     groups: dict[tuple[int, int], list[tuple[HgpPredictor, int]]] = {}
+    steps: dict[tuple[float, int], int] = {}  # forecast_steps by (horizon, config)
     for p, t in items:
-        if not isinstance(p, HgpPredictor) or not p._obs:
+        obs = getattr(p, "_obs", None)
+        if not obs or not isinstance(p, HgpPredictor):
             continue
-        tau = t - p._obs[-1].t
+        tau = t - obs[-1].t
         if not tau > 0.0:
             continue
         c = p.config
         f = p._forecast  # most are still covered: asked first, covers() inlined
         if f is not None and f.end >= min(tau, c.horizon_s) - 1e-9:
             continue
-        if p._window_len() < c.min_points:
+        if (len(obs) if p._uncapped else p._window_len()) < c.min_points:
             continue
-        groups.setdefault((id(c), id(p._state.shared)), []).append(
-            (p, forecast_steps(max(tau, 3.0), c)))
+        horizon = max(tau, 3.0)
+        count = steps.get((horizon, id(c)))
+        if count is None:
+            count = steps[horizon, id(c)] = forecast_steps(horizon, c)
+        key = (id(c), id(p._state.shared))
+        group = groups.get(key)
+        if group is None:
+            group = groups[key] = []
+        group.append((p, count))
     for group in groups.values():
         preds = [p for p, _ in group]
         made = forecast_batch([p._state for p in preds], [n for _, n in group])
@@ -224,7 +233,37 @@ def forecast_many_at(items: Iterable[tuple[object, float]]) -> int:
     return sum(len(group) for group in groups.values())
 
 
-register_batch(HgpPredictor, forecast_many_at, plans=True)
+def update_many(pairs: list[tuple[HgpPredictor, Observation]]) -> None:
+    """``p.update(obs)`` for each pair in order (:func:`catc.predict.update_many`): the same
+    steps without a call per branch, and one :func:`~catc.predict.kinematic.check_observation`
+    per observation for all the branches (each checked it on its own)."""
+    own = HgpPredictor.update
+    for p, obs in pairs:
+        if p.__class__.update is not own:  # a subclass with its own update
+            p.update(obs)
+            continue
+        window = p._obs
+        prev = window[-1] if window else None
+        if prev is not None and obs.t <= prev.t:
+            continue
+        branches = p._branches
+        kin = branches.kin
+        if kin:
+            if prev is not None:
+                branches.score_gap(obs, obs.t - prev.t, p._forecast)
+            check_observation(obs)
+            for k in kin:
+                checked = getattr(k, "update_checked", None)
+                if checked is None:
+                    k.update(obs)
+                else:
+                    checked(obs)
+        window.append(obs)
+        p._forecast = None
+        p._state.push(obs)
+
+
+register_batch(HgpPredictor, forecast_many_at, plans=True, update=update_many)
 
 
 def warm_up() -> None:

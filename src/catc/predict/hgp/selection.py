@@ -70,6 +70,22 @@ def own_selection(s: WindowState, rel: np.ndarray,
     return Selection(s.bank.speed[i], s.bank.heading[j], (i, j), s.shared.pair(i, j))
 
 
+def _select_regular(items: list[tuple[WindowState, np.ndarray, tuple]]) -> None:
+    """:func:`own_selection` of full regular windows, ``(state, prepared window, cache)``
+    (one bank and configuration: one cache serves all), their scores
+    :meth:`RegularSlopeBank.lml_z` computed for all windows at once."""
+    shared, cache = items[0][0].shared, items[0][2]
+    rels = stack([rel for _, rel, _ in items])  # (B, 3, n + 1)
+    best = []
+    for series, bank in ((1, cache[0]), (2, cache[1])):
+        m, k, _ = bank.Kinv.shape
+        z = rels[:, series]  # (B, k)
+        q = np.einsum("bmk,bk->bm", (z @ bank.Kinv.reshape(m * k, k).T).reshape(-1, m, k), z)
+        best.append(np.argmax(-0.5 * q + bank.const, axis=1).tolist())
+    for (s, _, _), i, j in zip(items, best[0], best[1], strict=True):
+        s.selection = Selection(s.bank.speed[i], s.bank.heading[j], (i, j), shared.pair(i, j))
+
+
 #: Windows per stacked call: bounds the work arrays (a selection's exponentials are
 #: 120 kB per window).
 _SELECT_CHUNK = 16
@@ -81,14 +97,25 @@ def select_batch(states: list[WindowState], rels: list[np.ndarray],
     :func:`~.gpstack.lml_stack` per series (paper eq. "eq-,odelselection"), the windows of
     one length stacked: the same choice as :func:`select`."""
     todo = []
+    regular: list[tuple[WindowState, np.ndarray, tuple]] = []
+    c = states[0].config if states else None
+    batch_regular = c is not None and c.slopes and c.select_with_slopes
     for s, rel, cache in zip(states, rels, caches, strict=True):
         s.stats["selections"] += 1
         s.since_selection = 0
+        if batch_regular and cache is not None and not s.online_speed:
+            regular.append((s, rel, cache))  # own_selection's cached case, for all at once
+            continue
         sel = own_selection(s, rel, cache)
         if sel is None:
             todo.append((s, rel))
         else:
             s.selection = sel
+    if len(regular) == 1:
+        s, rel, cache = regular[0]
+        s.selection = own_selection(s, rel, cache)
+    elif regular:
+        _select_regular(regular)
     by_len: dict[int, list[tuple[WindowState, np.ndarray]]] = {}
     for item in todo:
         by_len.setdefault(item[1].shape[1], []).append(item)

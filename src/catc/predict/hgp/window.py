@@ -194,6 +194,12 @@ class WindowState:
         c = self.config
         if len(tau) != c.tw or np.max(np.abs(np.diff(tau) - DT)) > 1e-6:
             return None
+        return self.regular_bank()
+
+    def regular_bank(self) -> tuple[RegularSlopeBank, ...]:
+        """:meth:`regular_cache` without the check that the window is regular (the caller
+        made it, e.g. for many windows at once: :func:`~.stacked.prepare_many`)."""
+        c = self.config
         regular = self.shared.regular
         cache = regular.get(c.tw)
         if cache is None:
@@ -207,6 +213,13 @@ class WindowState:
         """For a full regular window and a forecast of ``count`` points: the posterior weights
         of speed model ``i`` and heading model ``j`` and their variances (2, count) (cached
         per bank; see :class:`RegularSlopePosterior`)."""
+        post = self.regular_posteriors(count)
+        return post[0].weights[i], post[1].weights[j], np.vstack([post[0].var[i],
+                                                                  post[1].var[j]])
+
+    def regular_posteriors(self, count: int) -> tuple[RegularSlopePosterior, ...]:
+        """The speed and heading :class:`RegularSlopePosterior` of every bank model, for a
+        full regular window and a forecast of ``count`` points (cached per bank)."""
         c = self.config
         post = self.shared.posterior.get((c.tw, count))
         if post is None:
@@ -216,5 +229,4 @@ class WindowState:
                                       grid),
                 RegularSlopePosterior(self.bank.heading, c.tw, c.noise_heading, c.noise_yaw,
                                       grid))
-        return post[0].weights[i], post[1].weights[j], np.vstack([post[0].var[i],
-                                                                  post[1].var[j]])
+        return post

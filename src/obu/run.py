@@ -23,7 +23,8 @@ that fails (status ``rejected``), ``log`` tracks it anyway.  Host frames are not
 (they are the host's own state, not radio traffic).  ``--verify-policy on-demand`` (the
 default under enforce; :mod:`obu.frames`): the cheap checks on arrival, the ECDSA at once
 for the frames that could warn or start a track, the rest from a queue by threat, in idle
-time (slices of :data:`IDLE_SLICE_S`) and before each step (:mod:`obu.daemon`); a frame
+time (slices of :data:`IDLE_SLICE_S`), before each step (:mod:`obu.daemon`) and in
+``--verify-workers`` processes (:mod:`obu.ecdsa_worker`); a frame
 that its tick reaches unverified is stepped as such and can raise no warning
 (``obu.verify.jsonl`` says what became of it).  ``all``: every frame on arrival.
 

@@ -16,14 +16,17 @@ at the OBU's socket (stale verdicts, socket loss).
 
 IEEE 1609.2 (``--verify``): ``on`` makes a test PKI with a pseudonym per RV
 (``hil.pki.init`` in a temporary directory), the RVE signs every RV BSM (``rve run --sign``:
-the full certificate in a vehicle's first BSM, once a second and after a new neighbour,
-the HashedId8 digest otherwise) and the OBU runs with ``--verify enforce --trust DIR``; the
-row then shows the OBU's ``verify_ok`` and every other ``verify_<reason>`` counter and the
-RVE's signatures/s.  ``off`` is plain UPER, no 1609.2 at all (the rows before security
-existed); ``signed`` sends the signed frames to an OBU that does not verify (the cost of
-the envelope alone).  A list (``--verify off,on``, or ``both``) runs every mode for each
-cell, one after the other in the same run, and prints each mode's tick p99 and OBU CPU as a
-ratio to the ``off`` row of its cell.  ``--verify`` alone means ``on``.
+the full certificate in a vehicle's first BSM, once a second and after a new neighbour, the
+HashedId8 digest otherwise) and the OBU runs with ``--verify enforce --trust DIR
+--verify-policy all`` (every frame verified on arrival); the row then shows the OBU's ``verify_ok``
+and every other ``verify_<reason>`` counter and the RVE's signatures/s.  ``on-demand`` is
+the same with ``--verify-policy on-demand`` (issue 30): its row also shows the frames
+verified (at once + from the queue), deferred, skipped (dropped from the verification queue
+unverified) and stepped unverified.  ``off`` is plain UPER, no 1609.2 at all (the rows
+before security existed); ``signed`` sends the signed frames to an OBU that does not verify
+(the cost of the envelope alone).  A list (``--verify off,on``, or ``both``) runs every mode
+for each cell, one after the other in the same run, and prints each mode's tick p99 and OBU
+CPU as a ratio to the ``off`` row of its cell.  ``--verify`` alone means ``on``.
 
 ``--sign-workers 0,2`` (signed modes): one row per value of ``rve run --sign-workers``
 (0: the RVE signs in its sending loop; N: N worker processes sign ahead of the schedule,
@@ -32,7 +35,7 @@ ratio to the ``off`` row of its cell.  ``--verify`` alone means ``on``.
 
     python bench/obu_load.py [--json] [--rvs 100,250,500] [--per 0,50] [--predictors hgp,ca]
                              [--seconds 15] [--capture | --keep DIR]
-                             [--verify [off,on,signed|both]] [--sign-workers 0,2]
+                             [--verify [off,on,on-demand,signed|both]] [--sign-workers 0,2]
 
 Target (issue 6): 500 RVs with hgp at PER 50 %: no socket loss and tick p99 <= 50 ms.
 With --verify the same target holds for the verifying OBU.
@@ -81,7 +84,7 @@ def children_cpu_seconds() -> float:
     return use.ru_utime + use.ru_stime
 
 
-MODES = ("off", "on", "signed")
+MODES = ("off", "on", "on-demand", "signed")
 
 
 class WebClients:
@@ -127,7 +130,8 @@ class WebClients:
 
 def measure(n: int, per: float, predictor: str, seconds: float, capture: bool,
             verify: str = "off", web_clients: int | None = None,
-            keep: Path | None = None, sign_workers: int | None = None) -> dict:
+            keep: Path | None = None, sign_workers: int | None = None,
+            verify_workers: int | None = None) -> dict:
     ports = free_ports()
     web_port = None
     if web_clients is not None:
@@ -151,8 +155,11 @@ def measure(n: int, per: float, predictor: str, seconds: float, capture: bool,
         if verify != "off":  # a pseudonym per RV (the ring has N RVs and the host)
             pki_dir = Path(tmp) / "pki"
             pki_init(pki_dir, n, 1.0, seed=f"obu-load-{n}", foreign=False)
-        if verify == "on":
-            cmd += ["--verify", "enforce", "--trust", str(pki_dir)]
+        if verify in ("on", "on-demand"):  # on: every frame verified on arrival
+            cmd += ["--verify", "enforce", "--trust", str(pki_dir), "--verify-policy",
+                    "all" if verify == "on" else "on-demand"]
+            if verify == "on-demand" and verify_workers is not None:
+                cmd += ["--verify-workers", str(verify_workers)]
         obu = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                                text=True)
         try:
@@ -191,15 +198,20 @@ def measure(n: int, per: float, predictor: str, seconds: float, capture: bool,
     wall = wall1 - wall0
     late_ms = np.array(late) * 1e3 if late else np.zeros(1)
     return {"rvs": n, "per": per, "predictor": predictor, "verify": verify,
+            "verify_workers": verify_workers,
             "web_clients": web_clients,
             "web_states_received": clients.received if web_port else None,
             "socket_loss": sent - got, "frames_sent": sent,
             "tick_ms_p50": c.get("tick_ms_p50"), "tick_ms_p99": c.get("tick_ms_p99"),
             "tick_ms_max": c.get("tick_ms_max"), "deadline_misses": c.get("deadline_misses", 0),
             "ticks": c.get("ticks", 0),
+            # arrival to decision: the RV messages', and the host frames' (a tick's own)
+            "lag_ms_p99": c.get("lag_ms_p99"), "host_lag_ms_p99": c.get("host_lag_ms_p99"),
             "cpu_percent": round(100.0 * (cpu1 - cpu0) / wall, 1),
             "verify_counters": {k: v for k, v in sorted(c.items())
                                 if k.startswith("verify_")},
+            "ondemand_counters": {k: v for k, v in sorted(c.items())
+                                  if k.startswith("ondemand_")},
             "signed": counts.get("signed", 0),
             "signed_with_certificate": counts.get("with_certificate", 0),
             "signed_per_s": round(counts.get("signed", 0) / wall, 1),
@@ -244,6 +256,18 @@ def add_ratios(rows: list[dict]) -> None:
                               if base["rve_cpu_percent"] else None)}
 
 
+def _ondemand_cell(r: dict) -> str:
+    """Verified (at once + from the queue, also late), deferred, skipped, stepped
+    unverified: the frames of an on-demand row."""
+    c = r.get("ondemand_counters") or {}
+    if not c:
+        return "-"
+    vw = "" if r.get("verify_workers") is None else f"w{r['verify_workers']} "
+    return (f"{vw}{c.get('ondemand_at_once', 0)}+{c.get('ondemand_deferred_ok', 0)}/"
+            f"{c.get('ondemand_deferred', 0)}/{c.get('ondemand_skipped', 0)}/"
+            f"{c.get('ondemand_unverified_stepped', 0)}")
+
+
 def _verify_cell(r: dict) -> str:
     counters = r["verify_counters"]
     if not counters:
@@ -267,14 +291,18 @@ def main(argv: list[str] | None = None) -> int:
                          "it is kept (obu.ticks.jsonl has every tick's step time)")
     ap.add_argument("--verify", nargs="?", const="on", default="off", type=verify_modes,
                     metavar="MODES",
-                    help="IEEE 1609.2: on (the RVE signs, the OBU runs --verify enforce), off "
-                         "(plain UPER), signed (signed, the OBU does not verify), a list "
-                         "such as off,on, or both (= off,on); --verify alone is on; "
-                         "default off")
+                    help="IEEE 1609.2: on (the RVE signs, the OBU runs --verify enforce "
+                         "--verify-policy all: every frame on arrival), on-demand (--verify "
+                         "enforce --verify-policy on-demand), off (plain UPER), signed "
+                         "(signed, the OBU does not verify), a list such as off,on,on-demand, "
+                         "or both (= off,on); --verify alone is on; default off")
     ap.add_argument("--web-clients", metavar="K,...",
                     help="the OBU serves its live view (obu run --web) and K clients read "
                          "every state it pushes, one row per K (e.g. 0,10: the same cell "
                          "with none and with ten connected, in one run)")
+    ap.add_argument("--verify-workers", metavar="N,...",
+                    help="obu run --verify-workers for the on-demand mode, one row per value "
+                         "(default: obu run's own, 1)")
     ap.add_argument("--sign-workers", metavar="N,...",
                     help="rve run --sign-workers for the signed modes, one row per value "
                          "(default: rve run's own)")
@@ -282,15 +310,18 @@ def main(argv: list[str] | None = None) -> int:
     workers = ([int(v) for v in args.sign_workers.split(",")] if args.sign_workers
                else [None])
     webs = ([int(v) for v in args.web_clients.split(",")] if args.web_clients else [None])
+    vworkers = ([int(v) for v in args.verify_workers.split(",")] if args.verify_workers
+                else [None])
     rows = []
     for n in (int(v) for v in args.rvs.split(",")):
         for per in (float(v) for v in args.per.split(",")):
             for p in args.predictors.split(","):
                 for mode in args.verify:
                     for w in (workers if mode != "off" else [None]):
-                        for k in webs:
-                            rows.append(measure(n, per, p, args.seconds, args.capture, mode,
-                                                k, args.keep, w))
+                        for vw in (vworkers if mode == "on-demand" else [None]):
+                            for k in webs:
+                                rows.append(measure(n, per, p, args.seconds, args.capture,
+                                                    mode, k, args.keep, w, vw))
                     if not args.json:
                         print(f"  done {n} RVs PER {per:g} % {p} verify {mode}",
                               file=sys.stderr)
@@ -301,17 +332,17 @@ def main(argv: list[str] | None = None) -> int:
     print("OBU under load: UDP on 127.0.0.1, 10 Hz per RV, one OBU process"
           + (" writing its capture" if args.capture else "")
           + f", {os.cpu_count()} CPUs (other CPU %: what the rest of the machine ran meanwhile)")
-    print(f"{'RVs':>5} {'PER %':>6} {'predictor':>9} {'verify':>6} {'wk':>2} "
+    print(f"{'RVs':>5} {'PER %':>6} {'predictor':>9} {'verify':>9} {'wk':>2} "
           f"{'socket loss':>13} "
           f"{'tick p50':>9} {'tick p99':>9} {'tick max':>9} {'misses':>7} {'CPU %':>6} "
           f"{'p99 x':>6} {'CPU x':>6} {'RVE CPU %':>11} {'RVE late p99/max ms':>19} "
-          f"{'signed/s':>8} {'waits':>5} {'other CPU %':>11}  verdicts")
+          f"{'signed/s':>8} {'waits':>5} {'other CPU %':>11}  {'on demand':>27}  verdicts")
     for r in rows:
         ratios = r.get("vs_off", {})
         tick_x, cpu_x = ratios.get("tick_p99_ratio"), ratios.get("cpu_ratio")
         wk = "-" if r["sign_workers"] is None else r["sign_workers"]
         rve_cpu = f"{r['rve_cpu_percent']:.0f}+{r['rve_workers_cpu_percent']:.0f}"
-        print(f"{r['rvs']:>5} {r['per']:>6g} {r['predictor']:>9} {r['verify']:>6} {wk:>2} "
+        print(f"{r['rvs']:>5} {r['per']:>6g} {r['predictor']:>9} {r['verify']:>9} {wk:>2} "
               f"{r['socket_loss']:>6}/{r['frames_sent']:<6} {r['tick_ms_p50']:>9.1f} "
               f"{r['tick_ms_p99']:>9.1f} {r['tick_ms_max']:>9.1f} {r['deadline_misses']:>7} "
               f"{r['cpu_percent']:>6.1f} "
@@ -320,12 +351,15 @@ def main(argv: list[str] | None = None) -> int:
               f"{rve_cpu:>11} "
               f"{r['rve_late_ms_p99']:>9.2f}/{r['rve_late_ms_max']:<9.2f} "
               f"{r['signed_per_s']:>8.0f} {r.get('sign_ahead_waits', '-'):>5} "
-              f"{r['other_cpu_percent']:>11.1f}  {_verify_cell(r)}")
+              f"{r['other_cpu_percent']:>11.1f}  {_ondemand_cell(r):>27}  {_verify_cell(r)}")
     for r in rows:
         if r["web_clients"] is not None:
             print(f"  web clients {r['web_clients']:>2} ({r['rvs']} RVs PER {r['per']:g} % "
                   f"{r['predictor']}): tick p99 {r['tick_ms_p99']:.1f} ms, states read "
                   f"{r['web_states_received']}")
+    if any(r["verify"] == "on-demand" for r in rows):
+        print("on demand: frames verified at once + from the queue / deferred / skipped "
+              "(dropped from the queue unverified) / stepped unverified")
     if any("vs_off" in r for r in rows):
         print("p99 x, CPU x: the row's tick p99 and OBU CPU over those of the verify-off row "
               "of the same cell")

@@ -499,7 +499,8 @@ def test_obu_capture_files_per_tick_are_flushed_and_whole(tmp_path):
     for k, snap in enumerate(snaps):
         m = BSM(msg_cnt=k % 128, temp_id=0x1234, sec_mark=sec_mark(snap.t), lat=46.9,
                 lon=16.8, speed=10.0, heading=0.0)
-        obu.tick(snap, sec_mark(snap.t), 1.0, T0 + snap.t, [(m, T0 + snap.t, b"\0" * 9, None)])
+        obu.tick(snap, sec_mark(snap.t), 1.0, T0 + snap.t,
+                 [(m, T0 + snap.t, b"\0" * 9, None, None)])
         torn: list[tuple] = []
         rx = list(iter_lines(tmp_path / schema.OBU_RX, lambda *a, torn=torn: torn.append(a)))
         assert len(rx) == k + 1 and not torn

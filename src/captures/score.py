@@ -25,7 +25,9 @@
 * **Security** (``obu run --verify log|enforce``): the IEEE 1609.2 verdict of every RV
   frame, ``ok`` or the reason it failed (``unsigned``, ``bad-signature``,
   ``unknown-signer``, ``expired``, ``wrong-psid``, ``stale``, ``chain``, ``unsupported``),
-  and how many were rejected (dropped under ``enforce``).
+  and how many were rejected (dropped under ``enforce``); ``verification``: when each
+  frame was verified (verify on demand) and the warnings on verified data
+  (:mod:`captures.verification`).
 * **Latency** from the RVE's send to the OBU's decision (the end of the tick that used the
   message), from the two processes' wall clocks on one machine: of the received messages
   only, each from its first copy (a copy replayed seconds later is no latency).
@@ -51,6 +53,8 @@ from pathlib import Path
 
 import numpy as np
 
+from captures.verification import lines as verification_lines
+from captures.verification import verification
 from catc.apps.verdict import KEYS, Confusion, by_app
 from catc.bsm import MINUTE_MS, sec_mark
 from catc.geo import EnuFrame
@@ -307,6 +311,7 @@ def score(directory: Path) -> dict:
         "sent": len(sent), "dropped": n_rv - len(sent), "received": frames["received"],
         "decode_errors": garbage,
         "security": security,
+        "verification": verification(cap),  # and the warnings on verified data only
         "rejected": frames["rejected"],
         # received after the run's last host frame: never stepped
         "unticked": frames["unticked"],
@@ -504,6 +509,7 @@ def table(r: dict) -> str:
         sec = r["security"]
         lines.append(f"IEEE 1609.2: verified {sec.get('ok', 0)}, rejected {r['rejected']}"
                      + "".join(f", {k} {v}" for k, v in sorted(sec.items()) if k != "ok"))
+    lines += verification_lines(r.get("verification"))
     if r["latency_ms"]:
         lat, late = r["latency_ms"], r["late"]
         lines.append(f"latency send -> decision: p50 {lat['p50']} ms, p99 {lat['p99']} ms, "

@@ -40,9 +40,10 @@ __all__ = ["OBU_VEHICLE", "ObuCapture", "Received"]
 #: (:func:`obu.vehicle.vehicle_record`); not segmented.
 OBU_VEHICLE = "obu.vehicle.jsonl"
 
-#: An RV message at its tick: the BSM, its receive time (unix s), its octets and its
-#: IEEE 1609.2 verdict (None when frames are not verified).
-Received = tuple[BSM, float | None, bytes, str | None]
+#: An RV message at its tick: the BSM, its receive time (unix s), its octets, its
+#: IEEE 1609.2 verdict (None when frames are not verified, or not yet) and, verifying on
+#: demand, when it was verified (``at-once``, ``queue``, ``deferred``: not by its tick).
+Received = tuple[BSM, float | None, bytes, str | None, str | None]
 
 
 class ObuCapture:
@@ -57,6 +58,8 @@ class ObuCapture:
         self.run_id = schema.new_run_id()
         self.started = time.time()
         self.mbd = bool(args.mbd)
+        self.ondemand = (getattr(args, "verify", None) == "enforce"
+                         and getattr(args, "verify_policy", "all") == "on-demand")
         cap_mb = getattr(args, "capture_max_mb", None)
         self.max_bytes = None if cap_mb is None else float(cap_mb) * 1e6
         self.segment = 0
@@ -79,6 +82,7 @@ class ObuCapture:
         self.events = JsonLines(path(schema.OBU_EVENTS))
         self.mbd_log = JsonLines(path(schema.OBU_MBD)) if self.mbd else None
         self.mbr = JsonLines(path(schema.OBU_MBR)) if self.mbd else None
+        self.verify_log = JsonLines(path(schema.OBU_VERIFY)) if self.ondemand else None
 
     def _segment_bytes(self) -> int:
         return sum(f.tell() for f in self._files())
@@ -163,9 +167,17 @@ class ObuCapture:
 
     def message(self, received: Received, status: str, **details: Any) -> None:
         """One decoded RV message, stepped at a tick (``ok``) or never (``unticked``)."""
-        m, rx_unix, data, verdict = received
+        m, rx_unix, data, verdict, verify = received
         self.frame(rx_unix, "rv", data, status, sender=(m.temp_id, m.msg_cnt, m.sec_mark),
-                   verdict=verdict, **details)
+                   verdict=verdict, verify=verify, **details)
+
+    def late(self, rx_unix: float, bsm: BSM, outcome: str, stepped: bool) -> None:
+        """What became of a deferred message stepped unverified, or dropped from the
+        verification queue (:func:`hil.capture.schema.verified_late`)."""
+        if self.verify_log is not None:
+            self.verify_log.write(schema.verified_late(
+                time.time(), rx_unix, (bsm.temp_id, bsm.msg_cnt, bsm.sec_mark), outcome,
+                stepped))
 
     def finding(self, t_unix: float, t: float, reporter: int | None, detection: Any,
                 bsm: BSM, data: bytes) -> None:
@@ -202,7 +214,7 @@ class ObuCapture:
 
     def _files(self) -> list[Any]:
         return [f for f in (self.rx, self.ticks, self.tracks, self.events, self.mbd_log,
-                            self.mbr) if f is not None]
+                            self.mbr, self.verify_log) if f is not None]
 
     def flush(self) -> None:
         for f in self._files():

@@ -9,6 +9,7 @@ import argparse
 import json
 import sys
 import time
+from itertools import islice
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +23,13 @@ from obu.frames import Frames
 from obu.status import RateLimitedLog, Status
 from obu.tick import TICK_S, TickRule
 
-__all__ = ["Obu"]
+__all__ = ["PRE_TICK_MAX_S", "PRE_TICK_SPARE_S", "Obu"]
+
+#: Verify on demand: before a step, queued frames are verified for at most this long (s) ...
+PRE_TICK_MAX_S = 0.02
+#: ... and only while the tick can still be decided within its period of its host
+#: frame's arrival, with the longest of the last 20 steps and this much to spare (s).
+PRE_TICK_SPARE_S = 0.01
 
 
 class Obu:
@@ -80,12 +87,15 @@ class Obu:
         the host frame's, for a message that came before it) to the decision is kept
         (:class:`obu.status.Lags`)."""
         now = self.clock(host.sec_mark)
+        self.frames.pump()  # what the workers verified counts at this tick
+        self._verify_before_step()
         due = self.frames.due(now, self.cam.config.max_future_s)
+        unverified = self.frames.unverified(due)
         if self.frames.mbd is not None:  # unconfirmed newcomers raise no warning
             self.cam.apps.muted = self.frames.mbd.muted(now)
         t0 = time.perf_counter()
         try:
-            snap = self.cam.step(now, host, due)
+            snap = self.cam.step(now, host, due, unverified)
         except ValueError as err:  # time going backwards on the host channel
             self.counters["host_rejected"] += 1
             self.counters["host_backwards"] += 1
@@ -105,18 +115,32 @@ class Obu:
         # message can be used before the host frame that ticks it (a message dated ahead
         # of the host waits for its tick by rule, not because the OBU is behind)
         start = self.host_arrival
-        lags = [(decided - max(rx, start)) * 1000.0 for _, rx, _, _ in received
+        lags = [(decided - max(rx, start)) * 1000.0 for _, rx, _, _, _ in received
                 if rx is not None]
         self.status.lag.add(lags)
         self.status.lag_recent.add(lags)
         self.status.host_lag.add([(decided - self.host_arrival) * 1000.0])
         self._outputs(snap, host, ms, decided, received)
+        self.frames.new_snapshot(snap)
         if self.web is not None:
             if self.web.clients or self.web.polled:
                 self._publish(snap, host)
             else:  # nobody looks yet: keep the tick, build its state on the first look
                 self.web.unbuilt = lambda: self._state(snap, host)
         return snap
+
+    def _verify_before_step(self) -> None:
+        """Verify on demand: work the queue before the step, within its budget
+        (:data:`PRE_TICK_MAX_S`, :data:`PRE_TICK_SPARE_S`): the frames it reaches are
+        trusted at this tick."""
+        if not self.frames.queued():
+            return
+        step_s = max(islice(reversed(self.status.step_ms), 20), default=0.0) / 1000.0
+        spare = self.host_arrival + TICK_S - time.time() - step_s - PRE_TICK_SPARE_S
+        budget = min(PRE_TICK_MAX_S, spare)
+        if budget > 0.0:
+            self.counters["ondemand_pre_tick"] += self.frames.work(
+                time.monotonic() + budget, time.monotonic)
 
     def _publish(self, snap: MapSnapshot, host: BSM) -> None:
         """The tick's state to the live view (after the step: not in its time)."""
@@ -166,6 +190,8 @@ class Obu:
         out = self.status.all_counters(
             len(self.frames.pending), self.cam.tentative, self.cam.counters,
             transport_stats, None if self.gc is None else self.gc.counters())
+        if self.frames.queue is not None:  # verify on demand: still waiting
+            out["ondemand_queue"] = self.frames.queued()
         if self.web is not None:
             out.update({f"web_{k}": v for k, v in self.web.counters.items()})
         if self.vehicle is not None:
@@ -185,6 +211,7 @@ class Obu:
             except OSError as err:
                 failure = write_error(err, self.args.warnings)
         if self.cap is None:
+            self.frames.drain()  # the workers stop
             if failure is not None:
                 raise failure
             return
@@ -193,6 +220,7 @@ class Obu:
             # same, so that the capture has every frame the OBU received
             for r in self.frames.unticked():
                 self.cap.message(r, "unticked")
+            self.frames.drain()
             if counters is not None:
                 self.cap.write_counters(counters)
         except OSError as err:

@@ -13,6 +13,25 @@ checked for misbehavior, counted, and an RV message queued for its tick.
   ``verify_<reason>``) and kept in the frame's record; ``enforce`` drops a frame that
   fails (status ``rejected``), ``log`` tracks it anyway.  Host frames are not verified
   (they are the host's own state, not radio traffic).
+* Verify on demand (``--verify enforce --verify-policy on-demand``, the default policy;
+  :mod:`catc.security.ondemand`): every signed RV frame gets the cheap checks on arrival
+  (:meth:`catc.security.Verifier.check`; a failure is rejected as above), then its
+  priority from the last snapshot.  An urgent one (a new RV, hard braking, in the path
+  within the FCW's reach, in a side lane, an unverified track ahead) is verified at once
+  (``ondemand_at_once``); the others are deferred (``ondemand_deferred``) into a
+  :class:`~catc.security.ondemand.VerifyQueue` that :meth:`Frames.work` verifies in the
+  OBU's idle time and before each tick.  A deferred frame verified before its tick is
+  trusted there (``ondemand_deferred_ok``; one that fails is rejected and never stepped);
+  one its tick reaches unverified is stepped as such (``ondemand_unverified_stepped``; the
+  CAM flags its track and no application sees it), and when it is verified later and
+  fails (``ondemand_late_rejected``) its sender's track is dropped, unless it was a replay:
+  a copy of what the sender said.  The queue drops the oldest low-threat frames under
+  overload (``ondemand_skipped``); ``verify_ok`` and ``verify_<reason>`` count every
+  verdict, at once or later (the ``ondemand_`` counters are each frame's way, kept apart
+  from the ``verify_`` ones, which name verdicts only).  So an RV frame is a decode
+  error, or ``verify_ok + verify_rejected + ondemand_skipped`` + the frames still queued
+  (``ondemand_queue``).
+  Misbehavior detection sees a deferred frame only once verified before its tick.
 * Replays never reach misbehavior detection, in either mode.  A ``replay`` is a copy of
   a message already accepted, octet for octet or re-encoded: what it says about its
   sender is what that sender said earlier, and sent again by someone else it is
@@ -57,7 +76,11 @@ from obu.capture import ObuCapture, Received
 from obu.host import HostGate
 from obu.status import RateLimitedLog
 
-__all__ = ["Frames", "claimed_sender", "verifier"]
+__all__ = ["PUMP_EVERY", "Deferred", "Frames", "claimed_sender", "verifier"]
+
+#: With ``--verify-workers``: the workers are fed (and their answers settled) at least
+#: every this many deferred frames, besides once per pass of the event loop and per tick.
+PUMP_EVERY = 128
 
 
 def verifier(args: argparse.Namespace) -> Any:
@@ -89,6 +112,18 @@ def claimed_sender(frame: bytes) -> tuple[int, int, int | None] | None:
     return (bsm.temp_id, bsm.msg_cnt, bsm.sec_mark)
 
 
+class Deferred:
+    """A frame waiting in the verification queue: its BSM, what the cheap checks left for
+    the ECDSA (:class:`catc.security.Checked`), its receive time and octets, and whether
+    a tick stepped it unverified."""
+
+    __slots__ = ("bsm", "checked", "data", "rx_unix", "stepped")
+
+    def __init__(self, bsm: BSM, checked: Any, rx_unix: float, data: bytes) -> None:
+        self.bsm, self.checked, self.rx_unix, self.data = bsm, checked, rx_unix, data
+        self.stepped = False
+
+
 class Frames:
     """The receive path of ``obu run`` (see the module docstring).  ``counters``, ``log``
     and ``clock`` (the host's) are the daemon's; ``cap`` its capture (or None); ``drop``
@@ -108,8 +143,8 @@ class Frames:
         self.cap = cap
         self.drop = drop
         self.pending: list[BSM] = []  # decoded RV BSMs waiting for their tick
-        # id(bsm) -> (rx unix, octets, verdict)
-        self.pending_rx: dict[int, tuple[float, bytes, str | None]] = {}
+        # id(bsm) -> (rx unix, octets, verdict, when verified: verify on demand)
+        self.pending_rx: dict[int, tuple[float, bytes, str | None, str | None]] = {}
         self.verifier = verifier(args)
         if self.verifier is not None:
             from catc.security import unix_to_time64
@@ -126,6 +161,23 @@ class Frames:
         self.gate = HostGate(getattr(args, "host_id", None))
         self.last_signer: bytes | None = None  # the HashedId8 of the last verified frame
         self.enforce = args.verify == "enforce"
+        #: verify on demand: the queue, the priorities at the last tick, and the frames
+        #: waiting for their tick unverified (id(bsm) -> its queue entry)
+        self.queue: Any = None
+        self.deferred: dict[int, Deferred] = {}
+        if self.enforce and getattr(args, "verify_policy", "all") == "on-demand":
+            from catc.security import Threats, VerifyQueue
+
+            self.queue = VerifyQueue(getattr(args, "verify_queue", 2000),
+                                     on_skip=self._skipped)
+            self.threats = Threats(None)
+            self.new_threats = Threats
+        #: --verify-workers: processes that run the queue's ECDSA (obu.ecdsa_worker)
+        self.worker: Any = None
+        if self.queue is not None and getattr(args, "verify_workers", 0):
+            from obu.ecdsa_worker import EcdsaWorker
+
+            self.worker = EcdsaWorker(args.verify_workers)
 
     def take(self, channel: str, data: bytes, rx_unix: float) -> BSM | None:
         """One received frame on ``channel`` (``rv`` or ``host``): an RV message is
@@ -133,6 +185,8 @@ class Frames:
         verdict = None
         try:
             frame, envelope = open_envelope(data)
+            if channel == "rv" and self.queue is not None:
+                return self._on_demand(frame, envelope, data, rx_unix)
             if channel == "rv" and self.verifier is not None:
                 verdict = self.verify(envelope, rx_unix)
                 if verdict != "ok" and self.enforce:
@@ -144,7 +198,7 @@ class Frames:
                 if verdict == "replay":  # log: tracked, but no evidence for MBD
                     bsm = decode_frame(frame)
                     self.pending.append(bsm)
-                    self.pending_rx[id(bsm)] = (rx_unix, data, verdict)
+                    self.pending_rx[id(bsm)] = (rx_unix, data, verdict, None)
                     return None
             bsm = decode_frame(frame)
         except DecodeError as err:
@@ -158,7 +212,7 @@ class Frames:
             if self.mbd is not None and self.misbehaves(bsm, rx_unix, data, verdict):
                 return None
             self.pending.append(bsm)
-            self.pending_rx[id(bsm)] = (rx_unix, data, verdict)
+            self.pending_rx[id(bsm)] = (rx_unix, data, verdict, None)
             return None
         resyncs = self.gate.resyncs
         reason = self.gate.check(bsm, rx_unix)
@@ -176,6 +230,192 @@ class Frames:
             return None
         self.host_rx[id(bsm)] = rx_unix
         return bsm
+
+    def _count(self, reason: str) -> None:
+        self.counters[f"verify_{reason}"] += 1
+        if reason != "ok":
+            self.counters["verify_rejected"] += 1
+
+    def _reject(self, rx_unix: float, data: bytes, frame: bytes | None, reason: str,
+                verify: str | None = None, sender: Any = None) -> None:
+        self.log(reason, f"dropped an RV frame that does not verify: {reason}")
+        if self.cap is not None:
+            self.cap.frame(rx_unix, "rv", data, "rejected", verify=verify, verdict=reason,
+                           sender=sender if sender is not None else claimed_sender(frame))
+
+    def _on_demand(self, frame: bytes, envelope: Any, data: bytes, rx_unix: float) -> None:
+        """An RV frame under verify on demand (module docstring): checked, then verified
+        at once or queued.  Raises :class:`DecodeError` for a frame that does not decode."""
+        from catc.security import Verdict
+
+        checked = (Verdict(False, "unsigned", frame) if envelope is None
+                   else self.verifier.check(envelope, self.to_time64(rx_unix)))
+        if isinstance(checked, Verdict):  # a cheap check failed
+            self._count(checked.reason)
+            self._reject(rx_unix, data, frame, checked.reason)
+            return None
+        bsm = decode_frame(frame)
+        priority = self.threats.priority(bsm)
+        if priority.urgent:
+            v = self.verifier.finish(checked)
+            self._count(v.reason)
+            self.counters[f"ondemand_urgent_{priority.why}"] += 1
+            if not v.ok:
+                self._reject(rx_unix, data, frame, v.reason, "at-once")
+                return None
+            self.counters["ondemand_at_once"] += 1
+            self.last_signer = v.signer_digest
+            if self.mbd is not None and self.misbehaves(bsm, rx_unix, data, "ok"):
+                return None
+            self.pending.append(bsm)
+            self.pending_rx[id(bsm)] = (rx_unix, data, "ok", "at-once")
+            return None
+        self.counters["ondemand_deferred"] += 1
+        entry = Deferred(bsm, checked, rx_unix, data)
+        self.pending.append(bsm)
+        self.pending_rx[id(bsm)] = (rx_unix, data, None, "deferred")
+        self.deferred[id(bsm)] = entry
+        self.queue.push(entry, priority.threat, rx_unix)
+        if self.worker is not None and not self.counters["ondemand_deferred"] % PUMP_EVERY:
+            self.pump(rx_unix)  # a busy OBU seldom gets back to its loop: keep them fed
+        return None
+
+    def _skipped(self, entry: Deferred) -> None:
+        """The queue dropped ``entry`` unverified (overload, or too old)."""
+        self.counters["ondemand_skipped"] += 1
+        # still in self.deferred: its tick steps it unverified
+        if self.cap is not None:
+            self.cap.late(entry.rx_unix, entry.bsm, "skipped", entry.stepped)
+
+    def work(self, until: float, clock: Callable[[], float],
+             now_unix: float | None = None) -> int:
+        """Verify queued frames, most threatening first, until ``clock()`` reaches
+        ``until`` or the queue is empty (and, with ``--verify-workers``, no batch is left
+        at a worker: its answers are waited for meanwhile); how many were verified here.
+        ``now_unix`` (default the wall clock) ages the queue: frames received too long
+        before are dropped."""
+        queue = self.queue
+        if queue is None or not self.queued():
+            return 0
+        if now_unix is None:
+            import time
+
+            now_unix = time.time()
+        n = 0
+        finish, worker = self._finish, self.worker
+        while (left := until - clock()) > 0.0:
+            entry = queue.pop(now_unix)
+            if entry is not None:
+                finish(entry)
+                n += 1
+            elif worker is None or not worker.wait(left):
+                break
+            else:  # the queue is empty, a worker answers: those count now too
+                self.pump(now_unix)
+        return n
+
+    def pump(self, now_unix: float | None = None) -> None:
+        """With ``--verify-workers``: settle the frames the workers have verified, and
+        send them more from the queue (never blocks)."""
+        worker = self.worker
+        if worker is None:
+            return
+        settle = self.verifier.settle
+        n = 0
+        for entry, ok in worker.done():
+            self._finish(entry, settle(entry.checked, ok))
+            n += 1
+        self.counters["ondemand_worker"] += n
+        if len(self.queue):
+            if now_unix is None:
+                import time
+
+                now_unix = time.time()
+            self.counters["ondemand_sent"] += worker.feed(lambda: self.queue.pop(now_unix))
+        self.counters["ondemand_pumps"] += 1
+
+    def _finish(self, e: Deferred, v: Any = None) -> None:
+        """The ECDSA of a queued frame (``v``: its verdict when a worker made it), and
+        what follows from its verdict."""
+        if v is None:
+            v = self.verifier.finish(e.checked)
+        self._count(v.reason)
+        bsm, key = e.bsm, id(e.bsm)
+        if e.stepped:  # its tick took it unverified: too late to keep it out
+            if v.ok:
+                self.counters["ondemand_deferred_ok"] += 1
+                self.counters["ondemand_late_ok"] += 1
+            else:
+                self.counters["ondemand_deferred_failed"] += 1
+                self.counters["ondemand_late_rejected"] += 1
+                self.log("late", f"an RV frame stepped unverified does not verify: "
+                                 f"{v.reason}" + ("" if v.reason == "replay" else
+                                                  "; its sender's track dropped"))
+                # a replay is a copy of what its sender said: no reason to drop the track
+                if v.reason != "replay" and self.drop(bsm.temp_id):
+                    self.counters["ondemand_late_tracks_dropped"] += 1
+            if self.cap is not None:
+                self.cap.late(e.rx_unix, bsm, v.reason, True)
+            return
+        self.deferred.pop(key, None)
+        self.counters["ondemand_deferred_ok" if v.ok else "ondemand_deferred_failed"] += 1
+        if key not in self.pending_rx:  # quarantined meanwhile (--mbd): gone already
+            return
+        if v.ok:
+            self.pending_rx[key] = (e.rx_unix, e.data, "ok", "queue")
+            self.last_signer = v.signer_digest
+            if self.mbd is not None and self.misbehaves(bsm, e.rx_unix, e.data, "ok"):
+                self._unqueue(bsm)
+            return
+        self._unqueue(bsm)
+        self._reject(e.rx_unix, e.data, None, v.reason, "queue",
+                     (bsm.temp_id, bsm.msg_cnt, bsm.sec_mark))
+
+    def _unqueue(self, bsm: BSM) -> None:
+        """Take ``bsm`` out of the messages waiting for their tick (when still there)."""
+        self.pending_rx.pop(id(bsm), None)
+        for i, m in enumerate(self.pending):
+            if m is bsm:
+                del self.pending[i]
+                break
+
+    def unverified(self, messages: list[BSM]) -> frozenset[int]:
+        """The ``id()`` of the ``messages`` a tick takes unverified (for
+        :meth:`catc.cam.ContextAwareMap.step`); each is marked stepped, and stays queued."""
+        if not self.deferred:
+            return frozenset()
+        out = []
+        for m in messages:
+            entry = self.deferred.pop(id(m), None)
+            if entry is not None:
+                entry.stepped = True
+                out.append(id(m))
+        self.counters["ondemand_unverified_stepped"] += len(out)
+        return frozenset(out)
+
+    def new_snapshot(self, snap: Any) -> None:
+        """A tick's snapshot: the priorities of the frames until the next."""
+        if self.queue is not None:
+            self.threats = self.new_threats(snap)
+
+    def queued(self) -> int:
+        """Frames waiting for their ECDSA: in the queue, and sent to a worker."""
+        if self.queue is None:
+            return 0
+        return len(self.queue) + (len(self.worker.in_flight()) if self.worker else 0)
+
+    def drain(self) -> None:
+        """The run ends: what is still queued (or at a worker) is recorded ``pending``;
+        the workers stop."""
+        if self.queue is None:
+            return
+        left = self.queue.drain()
+        if self.worker is not None:
+            left += self.worker.in_flight()
+            self.worker.close()
+        for e in left:
+            if self.cap is not None:
+                self.cap.late(e.rx_unix, e.bsm, "pending", e.stepped)
 
     def start_tick(self, host: BSM) -> float:
         """Host frame ``host`` (believed by :meth:`take`) starts its tick: from now on
@@ -244,6 +484,7 @@ class Frames:
             for m in self.pending:
                 if m.temp_id in ids:
                     self.pending_rx.pop(id(m), None)
+                    self.deferred.pop(id(m), None)
                 else:
                     keep.append(m)
             self.pending = keep
@@ -264,7 +505,7 @@ class Frames:
 
     def received(self, messages: list[BSM]) -> list[Received]:
         """``messages`` with their receive time, octets and verdict, for the capture."""
-        return [(m, *self.pending_rx.pop(id(m), (None, b"", None))) for m in messages]
+        return [(m, *self.pending_rx.pop(id(m), (None, b"", None, None))) for m in messages]
 
     def unticked(self) -> list[Received]:
         """The queue emptied: messages received after the last host frame, never

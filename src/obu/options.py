@@ -21,7 +21,8 @@ DEFAULTS = {
     "predictor": "hgp", "capture": None, "overwrite": False, "duration": None, "idle_exit": None,
     "warnings": None, "collect_ms": 5.0, "can_interface": "virtual", "can_channel": None,
     "can_fd": False, "progress": True, "max_tracks": 1000, "verify": "off", "trust": None,
-    "mbd": False, "web": None, "host_id": None, "signatures": "strict",
+    "verify_policy": "on-demand", "verify_queue": 2000, "verify_workers": 1, "mbd": False,
+    "web": None, "host_id": None, "signatures": "strict",
     "capture_max_mb": None, "host_source": "channel", "vehicle": "toyota-rav4-2017",
     "dbc": None, "vehicle_can_interface": "virtual", "vehicle_can_channel": None,
     "vehicle_can_fd": False, "gnss": None, "gnss_delay": 0.1, "gnss_latency": "auto",
@@ -127,6 +128,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="IEEE 1609.2 verification of the RV frames: off (default), log "
                         "(verify and record the verdict, track every frame) or enforce "
                         "(drop what does not verify); needs --trust")
+    p.add_argument("--verify-policy", choices=("on-demand", "all"),
+                   help="when --verify enforce runs each frame's ECDSA: on-demand (default: "
+                        "the cheap checks on arrival, ECDSA at once for the RVs that could "
+                        "warn or are new, the rest queued by threat and verified in idle "
+                        "time; no warning rests on an unverified message; with spare "
+                        "capacity every frame is verified) or all (every frame on arrival); "
+                        "--verify log verifies all")
+    p.add_argument("--verify-queue", type=int, metavar="N",
+                   help="verify on demand: most frames waiting for their ECDSA; beyond, the "
+                        "oldest of the lowest threat are dropped unverified and counted "
+                        "(ondemand_skipped) (default 2000)")
+    p.add_argument("--verify-workers", type=int, metavar="N",
+                   help="verify on demand: processes (nice +10) that verify the queued "
+                        "frames beside the OBU's own idle time; 0: none (default 1)")
     p.add_argument("--signatures", choices=("strict", "standard"),
                    help="signature encodings --verify accepts: strict (default: rSig x-only "
                         "and low s, the one form nobody can derive from another) or "

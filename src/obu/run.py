@@ -20,7 +20,13 @@ at its receive time: signature, chain to the trusted root, psid 0x20, validity p
 generationTime freshness.  Each verdict is counted (``verify_ok``, ``verify_<reason>``)
 and kept in the frame's ``obu.rx.jsonl.gz`` record (``verdict``); ``enforce`` drops a frame
 that fails (status ``rejected``), ``log`` tracks it anyway.  Host frames are not verified
-(they are the host's own state, not radio traffic).
+(they are the host's own state, not radio traffic).  ``--verify-policy on-demand`` (the
+default under enforce; :mod:`obu.frames`): the cheap checks on arrival, the ECDSA at once
+for the frames that could warn or start a track, the rest from a queue by threat, in idle
+time (slices of :data:`IDLE_SLICE_S`), before each step (:mod:`obu.daemon`) and in
+``--verify-workers`` processes (:mod:`obu.ecdsa_worker`); a frame
+that its tick reaches unverified is stepped as such and can raise no warning
+(``obu.verify.jsonl`` says what became of it).  ``all``: every frame on arrival.
 
 Outputs:
 
@@ -82,7 +88,11 @@ from obu.frames import verifier
 from obu.options import DEFAULTS, add_arguments
 from obu.tick import STEP, TAKE, WAIT
 
-__all__ = ["DEFAULTS", "add_arguments", "fix_mmap_threshold", "run", "serve"]
+__all__ = ["DEFAULTS", "IDLE_SLICE_S", "add_arguments", "fix_mmap_threshold", "run", "serve"]
+
+#: Verify on demand: with no frame to handle, queued frames are verified in slices of
+#: this long (s), the sockets read between them.
+IDLE_SLICE_S = 0.002
 
 
 async def _open_receiver(args: argparse.Namespace) -> Receiver:
@@ -149,6 +159,7 @@ async def serve(args: argparse.Namespace) -> dict:
             push(r.channel, r.data, r.arrival)
 
     pumping = asyncio.create_task(pump())
+    queue = obu.frames.queue  # verify on demand's (None otherwise)
     runner = None
     if args.web:
         from obu.web import Hub, make_app, start
@@ -178,10 +189,18 @@ async def serve(args: argparse.Namespace) -> dict:
                     and time.monotonic() - last > args.idle_exit:
                 done = "idle"
                 break
+            if queue is not None:  # verify on demand: the workers' answers, and more work
+                obu.frames.pump()
             if not inbox and pending is None:
-                arrived.clear()
-                with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(arrived.wait(), 0.2)
+                if queue is not None and len(queue):  # verify on demand: idle time
+                    obu.counters["ondemand_idle"] += obu.frames.work(
+                        time.monotonic() + IDLE_SLICE_S, time.monotonic)
+                    await asyncio.sleep(0)  # read the sockets between slices
+                else:  # (batches at the workers: back soon for their answers)
+                    arrived.clear()
+                    with contextlib.suppress(TimeoutError):
+                        await asyncio.wait_for(arrived.wait(), 0.005 if queue is not None
+                                               and obu.frames.queued() else 0.2)
             while inbox or pending is not None:
                 if pending is None:
                     host = obu.frame(*inbox.popleft())
@@ -290,6 +309,12 @@ def run(args: argparse.Namespace) -> int:
     fix_mmap_threshold()
     if args.max_tracks is not None and args.max_tracks < 1:
         print("obu run: --max-tracks must be >= 1", file=sys.stderr)
+        return 2
+    if getattr(args, "verify_queue", 1) < 1:
+        print("obu run: --verify-queue must be >= 1", file=sys.stderr)
+        return 2
+    if getattr(args, "verify_workers", 0) < 0:
+        print("obu run: --verify-workers must be >= 0", file=sys.stderr)
         return 2
     try:
         check(args.predictor)

@@ -68,7 +68,7 @@ from urllib.parse import urlsplit
 
 from aiohttp import WSMsgType, hdrs, web
 
-from hil.capture.schema import hex_id, track_rows
+from hil.capture.schema import hex_id, track_rows, unverified
 
 if TYPE_CHECKING:
     from catc.cam import MapSnapshot
@@ -122,6 +122,7 @@ def tick_state(snap: MapSnapshot, host_sec_mark: int, panel: dict,
                       round(w.threshold_m, 2) if w.threshold_m == w.threshold_m else None]
                      for w in snap.warnings],
         "panel": panel, "truth": truth or [],
+        **unverified(snap),  # verify on demand: tracks no verified message fed last
     }
 
 

@@ -6,7 +6,8 @@ write, :func:`load_private_pem` reads them back).  The wire formats are in
 :mod:`catc.j2735.ieee1609`; this package adds the cryptography (ECDSA over NIST P-256 with
 SHA-256, the only algorithms it supports): ``_crypto`` time, hashing, signing;
 ``_pki`` keys, certificates and the test PKI; ``_verify`` the verifier; ``_replay`` its
-replay cache.
+replay cache; :mod:`~catc.security.ondemand` verify on demand (which messages to verify at
+once, and the queue of the others).
 
 Signatures (§5.3.1)
     The data to sign is hashed as ``H = SHA-256( SHA-256(data input) ||
@@ -115,16 +116,22 @@ from catc.security._pki import (
     private_pem,
 )
 from catc.security._replay import ReplayCache
-from catc.security._verify import VERDICT_REASONS, Verdict, Verifier, canonical
+from catc.security._verify import VERDICT_REASONS, Checked, Verdict, Verifier, canonical
+from catc.security.ondemand import OnDemandConfig, Priority, Threats, VerifyQueue
 
 __all__ = [
     "P256_ORDER",
     "VERDICT_REASONS",
+    "Checked",
     "Identity",
+    "OnDemandConfig",
     "Pki",
+    "Priority",
     "ReplayCache",
+    "Threats",
     "Verdict",
     "Verifier",
+    "VerifyQueue",
     "canonical",
     "hash_input",
     "issue_certificate",

@@ -56,6 +56,33 @@ class _Trusted:
     not_after: int
 
 
+@dataclass(frozen=True)
+class Checked:
+    """A message that passed every check of :meth:`Verifier.check`: what
+    :meth:`Verifier.finish` needs for its ECDSA verification (the signer's key is kept,
+    so a certificate evicted from the cache meanwhile does not matter)."""
+
+    unwrapped: Unwrapped
+    tbs_hash: bytes
+    signer: _Trusted
+    now_us: int
+    generation_us: int
+
+    @property
+    def frame(self) -> bytes | None:
+        return self.unwrapped.frame
+
+    @property
+    def signer_digest(self) -> bytes | None:
+        return self.unwrapped.signer_digest
+
+    def ecdsa_input(self) -> tuple[ec.EllipticCurvePublicKey, bytes | None, bytes]:
+        """What the message's ECDSA verification takes: the signer's key, the r || s
+        signature and the digest (for a verification elsewhere: another process)."""
+        return (self.signer.key, self.unwrapped.signature,
+                sha256(self.tbs_hash + self.signer.cert_hash))
+
+
 def _whole_certificate(raw: bytes) -> Certificate:
     cert, used = parse_certificate(raw)
     if used != len(raw):
@@ -227,7 +254,17 @@ class Verifier:
         octets that are not an ``Ieee1609Dot2Data`` at all (as :func:`unwrap` does).
 
         The checks run cheapest first and the first that fails is the verdict; a copy of
-        a message already accepted is ``replay`` before anything else is looked at."""
+        a message already accepted is ``replay`` before anything else is looked at.  It is
+        :meth:`check` (every check but the message's ECDSA) then :meth:`finish`."""
+        checked = self.check(data, now_us)
+        return checked if isinstance(checked, Verdict) else self.finish(checked)
+
+    def check(self, data: bytes | Unwrapped, now_us: int) -> Verdict | Checked:
+        """Every check of :meth:`verify` but the message's own ECDSA verification: the
+        failed :class:`Verdict`, or a :class:`Checked` for :meth:`finish`.  Cheap when
+        the signer is cached (a digest, or a certificate verified before); a certificate
+        not seen yet costs its own ECDSA verification here, once (verify on demand,
+        :mod:`catc.security.ondemand`)."""
         u = data if isinstance(data, Unwrapped) else unwrap(data)
         if u.security != "signed":
             return Verdict(False, "unsigned", u.frame)
@@ -270,10 +307,29 @@ class Verifier:
             return fail("message-expired")
         if self.canonical_only and not canonical(u):
             return fail("non-canonical")
-        if not verify_digest(signer.key, u.signature, sha256(tbs_hash + signer.cert_hash)):
-            return fail("bad-signature")
+        return Checked(u, tbs_hash, signer, now_us, generation)
+
+    def finish(self, checked: Checked) -> Verdict:
+        """The message's ECDSA verification, after :meth:`check` (at once, or later: the
+        checks stay those of its receive time).  A copy accepted since its check is a
+        ``replay``: two copies may wait at once, and only the first is the message."""
+        u = checked.unwrapped
+        if self.replays is not None and self.replays.seen(checked.tbs_hash, checked.now_us):
+            return Verdict(False, "replay", u.frame, u.signer_digest)
+        return self.settle(checked, verify_digest(*checked.ecdsa_input()))
+
+    def settle(self, checked: Checked, ecdsa_ok: bool) -> Verdict:
+        """:meth:`finish` with the ECDSA verification's outcome ``ecdsa_ok`` made
+        elsewhere (:meth:`Checked.ecdsa_input`): the replay check again, then the verdict,
+        and an accepted message into the replay cache."""
+        u, tbs_hash = checked.unwrapped, checked.tbs_hash
+        if self.replays is not None and self.replays.seen(tbs_hash, checked.now_us):
+            return Verdict(False, "replay", u.frame, u.signer_digest)
+        if not ecdsa_ok:
+            return Verdict(False, "bad-signature", u.frame, u.signer_digest)
         if self.replays is not None:  # only now: a forgery must not make the real one a replay
-            self.replays.add(tbs_hash, generation + self.max_age_us, now_us)
+            self.replays.add(tbs_hash, checked.generation_us + self.max_age_us,
+                             checked.now_us)
         return Verdict(True, "ok", u.frame, u.signer_digest)
 
     def verify_many(

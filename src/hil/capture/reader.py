@@ -47,6 +47,7 @@ from hil.capture.schema import (
     OBU_RX,
     OBU_TICKS,
     OBU_TRACKS,
+    OBU_VERIFY,
     RVE_CONFIG,
     RVE_END,
     RVE_SCHEDULE,
@@ -306,6 +307,11 @@ class Capture:
 
     def iter_mbr(self) -> Iterator[dict[str, Any]]:
         return self._stream(OBU_MBR, required=False)
+
+    def iter_verify(self) -> Iterator[dict[str, Any]]:
+        """``obu.verify.jsonl`` (verify on demand: what became of the messages stepped
+        unverified); nothing for a run without it."""
+        return self._stream(OBU_VERIFY, required=False)
 
     def iter_findings(self) -> Iterator[dict[str, Any]]:
         return self._stream(OBU_MBD, required=False)

@@ -76,6 +76,7 @@ __all__ = [
     "OBU_RX",
     "OBU_TICKS",
     "OBU_TRACKS",
+    "OBU_VERIFY",
     "RVE_CAN_STEM",
     "RVE_CONFIG",
     "RVE_END",
@@ -105,6 +106,8 @@ __all__ = [
     "track_columns",
     "track_rows",
     "truth",
+    "unverified",
+    "verified_late",
 ]
 
 RVE_CONFIG = "rve.config.json"
@@ -127,8 +130,11 @@ OBU_TRACKS = "obu.tracks.bin"
 OBU_EVENTS = "obu.events.jsonl"
 OBU_MBD = "obu.mbd.jsonl"
 OBU_MBR = "obu.mbr.jsonl"
+#: ``obu run --verify-policy on-demand``: what became of each message that reached its
+#: tick unverified, once known (:func:`verified_late`)
+OBU_VERIFY = "obu.verify.jsonl"
 #: The OBU's files written per tick, in segments under ``--capture-max-mb``.
-SEGMENTED = (OBU_RX, OBU_TICKS, OBU_TRACKS, OBU_EVENTS, OBU_MBD, OBU_MBR)
+SEGMENTED = (OBU_RX, OBU_TICKS, OBU_TRACKS, OBU_EVENTS, OBU_MBD, OBU_MBR, OBU_VERIFY)
 #: What captures written before 2026-11-27 called two of them (the reader reads both).
 LEGACY = {OBU_RX: "obu.rx.jsonl", OBU_TRACKS: "obu.tracks.jsonl"}
 
@@ -270,7 +276,7 @@ def end(run_id: str, exit: str, reason: str, started_unix: float, ended_unix: fl
 def received(rx_unix: float, channel: str, data: bytes, status: str, *,
              sender: tuple[int, int, int | None] | None = None, verdict: str | None = None,
              tick: float | None = None, decided_unix: float | None = None,
-             why: str | None = None) -> dict[str, Any]:
+             why: str | None = None, verify: str | None = None) -> dict[str, Any]:
     """One received frame (``obu.rx.jsonl.gz``) and what became of it: ``status`` is ``ok``
     (stepped at ``tick``, decided at ``decided_unix``), ``unticked`` (received after the
     last host frame), ``rejected`` (failed IEEE 1609.2 verification under enforce),
@@ -279,8 +285,13 @@ def received(rx_unix: float, channel: str, data: bytes, status: str, *,
     against anyone; ``id-conflict``, an id another certificate holds; captures before
     2026-11-28 have no ``why``) or the decode error's reason.
     ``sender`` is what the frame says of itself, (TemporaryID, msgCnt, secMark), where it
-    decodes; ``verdict`` the 1609.2 verdict where frames are verified.  The frame's octets
-    are kept in hex, so ``captures decode`` can decode the capture again."""
+    decodes; ``verdict`` the 1609.2 verdict where frames are verified.  ``verify`` (``obu
+    run --verify-policy on-demand``; absent before 2026-12-06 and under ``all``): when its
+    signature was verified, ``at-once`` (on arrival: the verdict is that one), ``queue``
+    (deferred, verified before its tick: the verdict too) or ``deferred`` (not verified by
+    its tick, so stepped unverified; no verdict here: :func:`verified_late` says what became
+    of it).  The frame's octets are kept in hex, so ``captures decode`` can decode the
+    capture again."""
     record: dict[str, Any] = {"rx_unix": rx_unix, "channel": channel}
     if sender is not None:
         record.update(id=hex_id(sender[0]), msgCnt=sender[1], sec_mark=sender[2])
@@ -289,10 +300,25 @@ def received(rx_unix: float, channel: str, data: bytes, status: str, *,
         record["why"] = why
     if verdict is not None:
         record["verdict"] = verdict
+    if verify is not None:
+        record["verify"] = verify
     if tick is not None:
         record.update(tick=tick, decided_unix=decided_unix)
     record.update(octets=len(data), hex=data.hex())
     return record
+
+
+def verified_late(t_unix: float, rx_unix: float, sender: tuple[int, int, int | None],
+                  outcome: str, stepped: bool) -> dict[str, Any]:
+    """What became of a deferred message (``obu.verify.jsonl``) that its tick stepped
+    unverified (``stepped``), or that was dropped from the verification queue before its
+    tick: at ``t_unix`` (wall clock), the message received at ``rx_unix`` from ``sender``
+    (TemporaryID, msgCnt, secMark: its ``obu.rx`` record's key) ended ``outcome``: ``ok``
+    or the verdict that rejected it (verified late), ``skipped`` (dropped from the queue
+    unverified) or ``pending`` (still queued when the OBU stopped)."""
+    return {"t_unix": t_unix, "rx_unix": rx_unix, "id": hex_id(sender[0]),
+            "msgCnt": sender[1], "sec_mark": sender[2], "outcome": outcome,
+            "stepped": stepped}
 
 
 def _finite(x: float, digits: int) -> float | None:
@@ -311,7 +337,17 @@ def tick(snap: Any, host_sec_mark: int, step_ms: float, decided_unix: float
         "host_speed": round(snap.host.speed, 3), "host_heading": round(snap.host.heading, 3),
         "tracked": len(snap), "step_ms": round(step_ms, 3), "decided_unix": decided_unix,
         "warnings": [[w.app, hex_id(w.rv_id), round(w.range_m, 3),
-                      _finite(w.threshold_m, 3), w.side] for w in snap.warnings]}
+                      _finite(w.threshold_m, 3), w.side] for w in snap.warnings],
+        **unverified(snap)}
+
+
+def unverified(snap: Any) -> dict[str, Any]:
+    """``unverified``: the RVs (hex ids) whose track no verified message fed last (the
+    snapshot's ``verified`` column, verify on demand); ``{}`` when there is none."""
+    verified = getattr(snap, "verified", None)
+    if verified is None or verified.all():
+        return {}
+    return {"unverified": [hex_id(int(i)) for i in snap.ids[~verified]]}
 
 
 def track_rows(snap: Any, host_sec_mark: int) -> list[dict[str, Any]]:

@@ -372,7 +372,7 @@ def test_part2_path_history_fills_the_trail_of_a_new_rv_and_gaps() -> None:
 
 _DISPOSITIONS = ("incomplete", "implausible", "late", "future", "self", "shadow",
                  "duplicate", "out_of_order", "jump", "inconsistent", "table_full",
-                 "accepted")
+                 "tentative_full", "accepted")
 
 
 def _accounted(c) -> bool:
@@ -433,7 +433,9 @@ def test_a_phantom_from_one_off_copies_is_never_confirmed_and_the_table_is_bound
         snap = m.step(t, hv(t), junk)
     c = snap.counters
     assert len(snap) == 0 and not snap.warnings and c["confirmed"] == 0
-    assert m.tentative == 8 and c["tentative_evicted"] == 1000 - 8
+    # every junk id evicted, or dropped while the table was full of ids heard < 0.25 s ago
+    assert m.tentative == 8 and c["tentative_evicted"] + c["tentative_full"] == 1000 - 8
+    assert c["tentative_evicted"] > 0 and c["tentative_full"] > 0
     assert _accounted(c)
 
 
@@ -450,7 +452,8 @@ def test_one_off_ids_do_not_evict_real_vehicles_from_the_tentative_table() -> No
                 for _ in range(5)]
         snap = m.step(t, hv(t), real + junk)
     assert sorted(int(i) for i in snap.ids) == [1000, 1001, 1002]
-    assert snap.counters["tentative_evicted"] == 5 * 5 - 8 and m.tentative == 8
+    c = snap.counters
+    assert c["tentative_evicted"] + c["tentative_full"] == 5 * 5 - 8 and m.tentative == 8
     assert _accounted(snap.counters)
 
 
@@ -525,3 +528,19 @@ def test_unverified_rows_hide_from_the_apps_and_not_from_the_verified() -> None:
         rows = dict(zip(snap.ids.tolist(), snap.verified.tolist(), strict=True))
         assert rows == {7: True, 66: False}
     assert seen == {7}
+
+
+def test_more_new_vehicles_than_the_tentative_table_are_all_confirmed_in_turns() -> None:
+    # 1,200 RVs heard for the first time at once, a tentative table of 1,000 (issue 30's
+    # dense runs): evicting the least recently heard went round for ever and confirmed
+    # none; now the newcomers beyond the table wait, and every vehicle is confirmed
+    m = cam(confirm_after=3, confirm_near=4, max_tracks=2000)
+    hv = lambda t: north(t, 0.0, 20.0, tid=99)  # noqa: E731
+    ids = random.Random(8).sample(range(1000, 2**31), 1200)
+    for k in range(12):
+        t = k * 0.1
+        snap = m.step(t, hv(t), [north(t, -300.0 + 5.0 * (i // 10), 20.0, x=3.6 * (i % 10),
+                                       tid=tid) for i, tid in enumerate(ids)])
+    c = snap.counters
+    assert len(snap) == 1200 and m.tentative == 0
+    assert c["tentative_evicted"] == 0 and c["tentative_full"] > 0 and _accounted(c)

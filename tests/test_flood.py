@@ -103,7 +103,7 @@ def test_a_flood_of_garbage_changes_nothing_and_is_accounted_for(tmp_path, clean
     assert c["frames_rv"] == rv_decode_errors + cam["received"] + c["pending"]
     dispositions = ("incomplete", "implausible", "late", "future", "self", "shadow",
                     "duplicate", "out_of_order", "jump", "inconsistent", "table_full",
-                    "accepted")
+                    "tentative_full", "accepted")
     assert cam["received"] == sum(cam[k] for k in dispositions)
     assert cam["self"] > 0 and cam["shadow"] + cam["self"] > 0
 

@@ -51,7 +51,10 @@ What one step does, in order:
    ``confirm_near`` when it first appeared within ``near_range_m`` of the HV (a sudden
    appearance); ``confirmed`` counts them.  At most ``max_tentative`` tentative tracks
    are kept (the one heard from least recently goes: ``tentative_evicted``; a real
-   vehicle, heard every 0.1-0.2 s, outlives one-off ids), and they do not count against
+   vehicle, heard every 0.1-0.2 s, outlives one-off ids; but while that one was heard
+   within ``tentative_grace_s``, the newcomer is dropped instead, ``tentative_full``, so
+   that more real newcomers than the table holds are confirmed in turns rather than
+   evicting each other for ever), and they do not count against
    ``max_tracks``: garbage that happens to decode can neither raise a warning nor fill
    the table.
 4. **HV**: its own predictor (``host_predictor``, CTRV as in SAE J2945/1) and path

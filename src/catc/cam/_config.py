@@ -66,6 +66,11 @@ class CamConfig:
     #: flood of one-off ids delays no real vehicle that sends 10 times a second unless it
     #: brings over ``max_tentative`` new ids between two of its messages.
     max_tentative: int = 1000
+    #: ... but while the least recently heard was heard within this (s: one lost message
+    #: at 10 Hz), the newcomer is dropped instead (``tentative_full``): with more real
+    #: newcomers than ``max_tentative`` (1,016 vehicles heard at once), evicting would
+    #: go round and none would ever be confirmed (issue 30, ``dense:`` runs).
+    tentative_grace_s: float = 0.25
     #: An unknown id one bit away from a tracked RV's or the HV's id and within this
     #: distance (m) of it is a bit-flipped copy (``shadow``).
     shadow_range_m: float = 10.0
@@ -108,4 +113,6 @@ class CamConfig:
         if self.confirm_after < 1 or self.confirm_near < 1 or self.max_tentative < 1:
             raise ValueError("CamConfig.confirm_after, confirm_near and max_tentative must "
                              "be >= 1")
+        if not self.tentative_grace_s >= 0.0:
+            raise ValueError("CamConfig.tentative_grace_s must be >= 0")
         make_predictor(self.predictor)  # an unknown name fails here, not at the first RV

@@ -32,7 +32,7 @@ COUNTERS = (
     "received", "accepted", "incomplete", "implausible", "late", "future", "duplicate",
     "out_of_order", "jump", "inconsistent", "self", "shadow", "reacquired", "table_full",
     "displaced", "evicted_stale", "tracks_created", "confirmed", "tentative_evicted",
-    "ph_crumbs_used", "ticks",
+    "tentative_full", "ph_crumbs_used", "ticks",
 )
 
 #: Positions kept per vehicle for the shadow check: 10 s at 10 Hz.
@@ -176,11 +176,14 @@ class TrackTable:
                 cnt["shadow"] += 1
                 return
             near = math.hypot(x - host.x, y - host.y) <= c.near_range_m
+            need = c.confirm_near if near else c.confirm_after
+            if need > 1 and self._tentative_full(t):
+                cnt["tentative_full"] += 1
+                return
             if not self._make_room(x, y, host):
                 cnt["table_full"] += 1
                 return
-            self._new_track(now, t, m, x, y, frame,
-                            c.confirm_near if near else c.confirm_after, verified)
+            self._new_track(now, t, m, x, y, frame, need, verified)
             return
         if t == tr.t:
             cnt["duplicate"] += 1
@@ -232,6 +235,16 @@ class TrackTable:
                 cnt["confirmed"] += 1
             else:  # heard again: the most recent, evicted last
                 self.tentative[m.temp_id] = None
+
+    def _tentative_full(self, t: float) -> bool:
+        """The tentative tracks are ``max_tentative`` and the least recently heard was
+        heard within ``tentative_grace_s`` of ``t``: a newcomer at ``t`` must wait (module
+        docstring of :mod:`catc.cam`, step 3)."""
+        c = self.config
+        if len(self.tentative) < c.max_tentative:
+            return False
+        oldest = self.tracks[next(iter(self.tentative))]
+        return t - oldest.t < c.tentative_grace_s
 
     def take_updates(self) -> list[tuple[Predictor, Observation]]:
         """The predictor updates :meth:`apply` left (:attr:`updates`), handed over once."""

@@ -173,7 +173,12 @@ def agreement(live: dict, offline: dict, tracks: dict | None = None,
 
 #: The OBU's defences an attack cell runs against: flags of ``obu run``.
 DEFENCES = {"none": [], "enforce": ["--verify", "enforce"],
-            "enforce+mbd": ["--verify", "enforce", "--mbd"]}
+            "enforce+mbd": ["--verify", "enforce", "--mbd"],
+            # enforce's policy is on demand (obu run --verify-policy); this one verifies
+            # every frame on arrival, the reference of issue 30's security table
+            "enforce-all": ["--verify", "enforce", "--verify-policy", "all"]}
+#: The defences a sweep runs when none are named.
+DEFAULT_DEFENCES = ("none", "enforce", "enforce+mbd")
 
 
 def attack_checks(spec: str, table: MobilityTable, predictor: str, attacks: list[str],
@@ -195,7 +200,7 @@ def attack_checks(spec: str, table: MobilityTable, predictor: str, attacks: list
     from captures.score import score
     from hil.pki import init
 
-    defences = list(DEFENCES) if defences is None else defences
+    defences = list(DEFAULT_DEFENCES) if defences is None else defences
     rows = []
     root = Path(tempfile.mkdtemp(prefix="catc-attack-"))
     twins: dict[tuple[float, str], Path] = {}
@@ -245,6 +250,8 @@ def attack_checks(spec: str, table: MobilityTable, predictor: str, attacks: list
                         "recall": d.get("recall"), "precision": d.get("precision"),
                         "time_to_detect_s": max(ttd) if ttd else None,
                         "pte95_m": s["pte95_m"],
+                        # issue 30: every warning on verified data (verify on demand)
+                        "verification": _verification_summary(s.get("verification")),
                         "lost_tp": vs["lost_tp"],
                         "warning_ticks_fabricated": sum(warned["fabricated"]["ticks"].values()),
                         "warning_ticks_misbehaving": sum(
@@ -260,6 +267,15 @@ def attack_checks(spec: str, table: MobilityTable, predictor: str, attacks: list
     finally:
         shutil.rmtree(root, ignore_errors=True)
     return rows
+
+
+def _verification_summary(v: dict | None) -> dict | None:
+    """What an attack row keeps of ``captures score``'s verification section."""
+    if v is None:
+        return None
+    return {k: v[k] for k in ("policy", "frames", "warning_ticks", "warning_ticks_on_verified",
+                              "warning_events", "warning_events_on_verified",
+                              "all_on_verified", "unverified_track_ticks")}
 
 
 def _num(x: float | None) -> str:

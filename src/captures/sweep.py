@@ -128,8 +128,9 @@ def add_grid_arguments(p: argparse.ArgumentParser) -> None:
                         "and against the same run without it (captures defence): TP ticks "
                         "lost, honest vehicles suspected or quarantined")
     p.add_argument("--defences", type=partial(csv_list, str), default=None,
-                   help="OBU defences of the attack runs: none, enforce, enforce+mbd "
-                        "(default all three)")
+                   help="OBU defences of the attack runs: none, enforce (verify on "
+                        "demand), enforce+mbd, enforce-all (verify every frame on "
+                        "arrival) (default the first three)")
     p.add_argument("--live-speed", type=float, default=8.0,
                    help="replay speed of the live runs (default 8x)")
 

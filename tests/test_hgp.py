@@ -541,14 +541,13 @@ def test_the_batch_interface_is_declared_not_discovered():
     a class declaring plans without plan and plan_pair is refused."""
     from catc.predict import make_predictor
     from catc.predict.base import BatchSupport, batch_support, register_batch
-    from catc.predict.hgp import forecast_many_at, update_many
+    from catc.predict.hgp import forecast_many_at
 
     class Sub(HgpPredictor):
         pass
 
     for cls in (HgpPredictor, Sub):
-        assert batch_support(cls) == BatchSupport(forecast_many_at, plans=True,
-                                                  update=update_many)
+        assert batch_support(cls) == BatchSupport(forecast_many_at, plans=True)
     for name in ("hgp-d", "ca", "kf", "imm"):
         assert batch_support(type(make_predictor(name))) is None, name
 
@@ -742,40 +741,3 @@ def test_compiled_integration_is_the_numpy_one(rule):
     gpkernels.integrate_rows(eff, sc, mean, var, start, dgrid, half, rule == "trapezoid",
                              DT * DT, got)
     np.testing.assert_array_equal(got, want)
-
-
-def test_update_many_feeds_predictors_exactly_as_update_does():
-    """catc.predict.update_many (the CA-TC feeds a tick's BSMs to their predictors in one
-    call) leaves every predictor as update() one by one would: the same branch scores and
-    choices, KF states and windows, so the same answers bit for bit; a subclass with its
-    own update and a non-HGP predictor in the list are fed by their update."""
-    from catc.predict import make_predictor, update_many
-
-    calls = []
-
-    class Own(HgpPredictor):
-        def update(self, obs):
-            calls.append(obs.t)
-            super().update(obs)
-
-    rng = np.random.default_rng(7)
-    tracks = [random_track(rng, 80, per) for per in (0.0, 0.3, 0.6, 0.3)]
-    one = [HgpPredictor(BANK), HgpPredictor(BANK), HgpPredictor(BANK), make_predictor("kf")]
-    many = [HgpPredictor(BANK), HgpPredictor(BANK), Own(BANK), make_predictor("kf")]
-    times = sorted({o.t for tr in tracks for o in tr})
-    fed = set()
-    for t in times:
-        due = [(i, o) for i, tr in enumerate(tracks) for o in tr if o.t == t]
-        for i, o in due:
-            one[i].update(o)
-            fed.add(i)
-        update_many([(many[i], o) for i, o in due])
-        for i in sorted(fed):
-            a, b = one[i], many[i]
-            pa, pb = a.predict(t + 1.3), b.predict(t + 1.3)
-            assert (pa.x, pa.y, pa.speed, pa.heading) == (pb.x, pb.y, pb.speed, pb.heading)
-    for a, b in zip(one[:3], many[:3], strict=True):
-        assert a._branches.score == b._branches.score
-        assert a._branches.choice == b._branches.choice
-        assert a._branches.kin[1].state.tolist() == b._branches.kin[1].state.tolist()
-    assert calls == [o.t for o in tracks[2]]

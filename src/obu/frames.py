@@ -63,6 +63,7 @@ checked for misbehavior, counted, and an RV message queued for its tick.
 from __future__ import annotations
 
 import argparse
+import time
 from collections import Counter
 from collections.abc import Callable
 from typing import Any
@@ -298,8 +299,6 @@ class Frames:
         if queue is None or not self.queued():
             return 0
         if now_unix is None:
-            import time
-
             now_unix = time.time()
         n = 0
         finish, worker = self._finish, self.worker
@@ -328,8 +327,6 @@ class Frames:
         self.counters["ondemand_worker"] += n
         if len(self.queue):
             if now_unix is None:
-                import time
-
                 now_unix = time.time()
             self.counters["ondemand_sent"] += worker.feed(lambda: self.queue.pop(now_unix))
         self.counters["ondemand_pumps"] += 1

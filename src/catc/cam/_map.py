@@ -34,7 +34,7 @@ from catc.classify import (
 )
 from catc.geo import EnuFrame
 from catc.pathhistory import ConcisePathHistory
-from catc.predict import make_predictor, predict_columns, prepare, update_many
+from catc.predict import make_predictor, predict_columns, prepare
 from catc.predict.base import Observation, Predictor
 
 
@@ -108,14 +108,8 @@ class ContextAwareMap:
                                      [host.lon] + [m.lon for _, m in usable])
         host_est = self._update_host(now, host, ex[0], ny[0])
         self._table.note_host_position(now, ex[0], ny[0])
-        apply, frame = self._table.apply, self.frame
-        if unverified:
-            for (t, m), x, y in zip(usable, ex[1:], ny[1:], strict=True):
-                apply(now, t, m, x, y, host_est, frame, id(m) not in unverified)
-        else:
-            for (t, m), x, y in zip(usable, ex[1:], ny[1:], strict=True):
-                apply(now, t, m, x, y, host_est, frame)
-        update_many(self._table.take_updates())
+        for (t, m), x, y in zip(usable, ex[1:], ny[1:], strict=True):
+            self._table.apply(now, t, m, x, y, host_est, self.frame, id(m) not in unverified)
         self._table.evict_stale(now)
         snap = self._snapshot(now, host_est)
         if self.apps is not None:

@@ -104,10 +104,6 @@ class TrackTable:
         self._new_predictor = new_predictor
         self.tracks: dict[int, Track] = {}
         self.tentative: dict[int, None] = {}  # ids of tentative tracks, least recently heard first
-        #: (predictor, observation) of the messages applied since :meth:`take_updates`:
-        #: the predictors are fed after admission, all at once (nothing in admission reads
-        #: them), by :func:`catc.predict.update_many`.
-        self.updates: list[tuple[Predictor, Observation]] = []
         self.host_ids: dict[int, float] = {}  # the HV's temporary ids -> last seen
         self.host_recent: deque = deque(maxlen=_RECENT)  # the HV's (t, x, y)
 
@@ -224,7 +220,7 @@ class TrackTable:
         tr.verified = verified
         tr.accepted += 1
         tr.fresh_at = now
-        self.updates.append((tr.predictor, _observation(t, x, y, m)))
+        tr.predictor.update(_observation(t, x, y, m))
         tr.history.add(t, x, y)
         tr.recent.append((t, x, y))
         cnt["accepted"] += 1
@@ -245,11 +241,6 @@ class TrackTable:
             return False
         oldest = self.tracks[next(iter(self.tentative))]
         return t - oldest.t < c.tentative_grace_s
-
-    def take_updates(self) -> list[tuple[Predictor, Observation]]:
-        """The predictor updates :meth:`apply` left (:attr:`updates`), handed over once."""
-        updates, self.updates = self.updates, []
-        return updates
 
     def _fill_history(self, hist: ConcisePathHistory, m: BSM, t: float, after: float,
                       frame: EnuFrame) -> None:
@@ -316,7 +307,7 @@ class TrackTable:
     def _new_track(self, now: float, t: float, m: BSM, x: float, y: float, frame: EnuFrame,
                    need: int = 1, verified: bool = True) -> None:
         pred = self._new_predictor()
-        self.updates.append((pred, _observation(t, x, y, m)))
+        pred.update(_observation(t, x, y, m))
         hist = ConcisePathHistory(tolerance_m=self.config.ph_tolerance_m)
         if m.path_history is not None:
             self._fill_history(hist, m, t, -math.inf, frame)

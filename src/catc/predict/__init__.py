@@ -107,25 +107,6 @@ def prepare_at(items) -> int:
     return sum(fn(group) for fn, group in groups.items())
 
 
-def update_many(pairs) -> None:
-    """``p.update(obs)`` for every ``(p, obs)`` pair, in order: the same results.  Kinds of
-    predictor that declared a batch ``update`` (:func:`catc.predict.base.register_batch`:
-    the HGP) are fed theirs in one call each; their pairs keep their order."""
-    groups: dict = {}
-    for pair in pairs:
-        support = batch_support(pair[0].__class__)
-        fn = support.update if support is not None else None
-        if fn is None:
-            pair[0].update(pair[1])
-        else:
-            group = groups.get(fn)
-            if group is None:
-                group = groups[fn] = []
-            group.append(pair)
-    for fn, group in groups.items():
-        fn(group)
-
-
 def predict_columns(predictors, t0: float, t1: float):
     """Every predictor's state at ``t0`` and at ``t1``, as columns: a (10, n) array whose
     rows are x, y, speed and heading at t0 and t1 interleaved (x(t0), x(t1), y(t0), ...),
@@ -180,4 +161,4 @@ def predict_columns(predictors, t0: float, t1: float):
 
 
 __all__ = ["NAMES", "STACKED", "Observation", "Prediction", "Predictor", "available",
-           "check", "make_predictor", "predict_columns", "prepare", "prepare_at", "update_many"]
+           "check", "make_predictor", "predict_columns", "prepare", "prepare_at"]

@@ -108,9 +108,6 @@ class BatchSupport:
     prepare: Preparer | None = None
     #: it is a :class:`BatchPredictor` (``plan`` and ``plan_pair``)
     plans: bool = False
-    #: feeds many ``(predictor, observation)`` pairs at once, the same as ``update`` on
-    #: each in order (or None)
-    update: Callable[[list[tuple[Predictor, Observation]]], None] | None = None
 
 
 #: The declarations, by class (filled by the modules that define the classes).
@@ -119,16 +116,14 @@ _DECLARED: dict[type, BatchSupport] = {}
 _RESOLVED: dict[type, BatchSupport | None] = {}
 
 
-def register_batch(cls: type, prepare: Preparer | None = None, *, plans: bool = False,
-                   update: Callable | None = None) -> None:
+def register_batch(cls: type, prepare: Preparer | None = None, *, plans: bool = False) -> None:
     """Declare that predictors of class ``cls`` (and its subclasses) are prepared stacked
-    by ``prepare`` (:func:`catc.predict.prepare_at`), with ``plans`` implement
-    :class:`BatchPredictor` (:func:`catc.predict.predict_columns`), and are fed many
-    observations at once by ``update`` (:func:`catc.predict.update_many`)."""
+    by ``prepare`` (:func:`catc.predict.prepare_at`) and, with ``plans``, implement
+    :class:`BatchPredictor` (:func:`catc.predict.predict_columns`)."""
     if plans and not (callable(getattr(cls, "plan", None))
                       and callable(getattr(cls, "plan_pair", None))):
         raise TypeError(f"{cls.__name__} declares plans without plan and plan_pair")
-    _DECLARED[cls] = BatchSupport(prepare, plans, update)
+    _DECLARED[cls] = BatchSupport(prepare, plans)
     _RESOLVED.clear()
 
 

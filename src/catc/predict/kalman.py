@@ -151,11 +151,6 @@ class KalmanPredictor:
     def update(self, obs: Observation) -> None:
         """Time update to ``obs.t`` and measurement update with ``obs`` (ignored if not newer)."""
         check_observation(obs)
-        self.update_checked(obs)
-
-    def update_checked(self, obs: Observation) -> None:
-        """:meth:`update` of an observation :func:`check_observation` already passed (the
-        HGP's branches share one check: :func:`catc.predict.hgp.update_many`)."""
         if self._t is not None and obs.t <= self._t:
             return
         h = math.radians(obs.heading)

@@ -78,13 +78,6 @@ class _FromLastObservation(ABC):
             return
         self._last = obs
 
-    def update_checked(self, obs: Observation) -> None:
-        """:meth:`update` of an observation :func:`check_observation` already passed (the
-        HGP's branches share one check: :func:`catc.predict.hgp.update_many`)."""
-        if self._last is not None and obs.t <= self._last.t:
-            return
-        self._last = obs
-
     def predict(self, t: float) -> Prediction:
         """The model's state at time ``t`` (at or after the last observation)."""
         if self._last is None:

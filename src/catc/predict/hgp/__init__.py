@@ -95,13 +95,7 @@ is re-exported here.
 from catc.predict.forecast import integrate
 from catc.predict.hgp.config import HgpConfig, HgpDirectConfig
 from catc.predict.hgp.direct import HgpDirectPredictor
-from catc.predict.hgp.predictor import (
-    HgpPredictor,
-    forecast_many,
-    forecast_many_at,
-    update_many,
-    warm_up,
-)
+from catc.predict.hgp.predictor import HgpPredictor, forecast_many, forecast_many_at, warm_up
 from catc.predict.hgp.reference import (
     RegularSlopeBank,
     RegularSlopePosterior,
@@ -112,5 +106,4 @@ from catc.predict.hgp.reference import (
 
 __all__ = ["HgpConfig", "HgpDirectConfig", "HgpDirectPredictor", "HgpPredictor",
            "RegularSlopeBank", "RegularSlopePosterior", "forecast_many", "forecast_many_at",
-           "forecast_path", "integrate", "lml_with_slope", "posterior_with_slope", "update_many",
-           "warm_up"]
+           "forecast_path", "integrate", "lml_with_slope", "posterior_with_slope", "warm_up"]

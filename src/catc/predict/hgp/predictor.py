@@ -23,7 +23,7 @@ from catc.predict.hgp.reference import forecast_path, implausible, window_series
 from catc.predict.hgp.selection import select
 from catc.predict.hgp.stacked import forecast_batch
 from catc.predict.hgp.window import WindowPredictor, WindowState
-from catc.predict.kinematic import check_observation, elapsed
+from catc.predict.kinematic import elapsed
 
 #: One instance per distinct configuration, so that predictors can be grouped by identity.
 _CONFIGS: dict[HgpConfig, HgpConfig] = {}
@@ -233,37 +233,7 @@ def forecast_many_at(items: Iterable[tuple[object, float]]) -> int:
     return sum(len(group) for group in groups.values())
 
 
-def update_many(pairs: list[tuple[HgpPredictor, Observation]]) -> None:
-    """``p.update(obs)`` for each pair in order (:func:`catc.predict.update_many`): the same
-    steps without a call per branch, and one :func:`~catc.predict.kinematic.check_observation`
-    per observation for all the branches (each checked it on its own)."""
-    own = HgpPredictor.update
-    for p, obs in pairs:
-        if p.__class__.update is not own:  # a subclass with its own update
-            p.update(obs)
-            continue
-        window = p._obs
-        prev = window[-1] if window else None
-        if prev is not None and obs.t <= prev.t:
-            continue
-        branches = p._branches
-        kin = branches.kin
-        if kin:
-            if prev is not None:
-                branches.score_gap(obs, obs.t - prev.t, p._forecast)
-            check_observation(obs)
-            for k in kin:
-                checked = getattr(k, "update_checked", None)
-                if checked is None:
-                    k.update(obs)
-                else:
-                    checked(obs)
-        window.append(obs)
-        p._forecast = None
-        p._state.push(obs)
-
-
-register_batch(HgpPredictor, forecast_many_at, plans=True, update=update_many)
+register_batch(HgpPredictor, forecast_many_at, plans=True)
 
 
 def warm_up() -> None:

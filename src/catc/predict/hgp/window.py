@@ -208,15 +208,6 @@ class WindowState:
                 RegularSlopeBank(self.bank.heading, c.tw, c.noise_heading, c.noise_yaw))
         return cache
 
-    def regular_posterior(self, i: int, j: int, count: int,
-                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """For a full regular window and a forecast of ``count`` points: the posterior weights
-        of speed model ``i`` and heading model ``j`` and their variances (2, count) (cached
-        per bank; see :class:`RegularSlopePosterior`)."""
-        post = self.regular_posteriors(count)
-        return post[0].weights[i], post[1].weights[j], np.vstack([post[0].var[i],
-                                                                  post[1].var[j]])
-
     def regular_posteriors(self, count: int) -> tuple[RegularSlopePosterior, ...]:
         """The speed and heading :class:`RegularSlopePosterior` of every bank model, for a
         full regular window and a forecast of ``count`` points (cached per bank)."""

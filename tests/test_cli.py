@@ -259,6 +259,9 @@ OBU_RUN = ["obu.cli", "run", "--duration", "0.3", "--no-progress",
     ([*RVE_RUN, "--sign", "{pki}"], 2, "{pki}/pki.json: not UTF-8 text"),
     ([*OBU_RUN, "--verify", "enforce", "--trust", "{listed}"], 2,
      "{listed}/pki.json: not a JSON object"),
+    # the bound on the urgent ECDSA: a rate above 0, or off
+    ([*OBU_RUN, "--verify-urgent", "0"], 2, "--verify-urgent: a number above 0, got 0"),
+    ([*OBU_RUN, "--verify-urgent", "many"], 2, "--verify-urgent"),
 ])
 def test_every_bad_input_is_one_line(argv, code, needle, bad_files):
     """Issue 27: each of these ended in a traceback, or in a line that named neither the

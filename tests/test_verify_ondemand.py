@@ -462,7 +462,8 @@ def test_score_finds_a_warning_on_an_unverified_message() -> None:
 
     rx = [_rx("A", 1.0, 1000, "at-once", "ok"), _rx("A", 1.1, 1100, "deferred", None),
           _rx("B", 1.0, 1000, "queue", "ok"), _rx("B", 1.1, 1050, "at-once", "ok"),
-          _rx("B", 1.1, 1010, "deferred", None)]  # older than B's newest at that tick
+          _rx("B", 1.1, 1010, "deferred", None),  # older than B's newest at that tick
+          {**_rx("C", 1.1, 1100, "held", None), "status": "withheld"}]  # never stepped
     ticks = [{"t": 1.0, "warnings": [["fcw", "A"]]},
              {"t": 1.1, "warnings": [["bsw", "B"]], "unverified": ["A"]},
              {"t": 1.2, "warnings": [["fcw", "A"]]}]
@@ -471,7 +472,151 @@ def test_score_finds_a_warning_on_an_unverified_message() -> None:
     assert v["warning_ticks"] == 3 and v["warning_ticks_on_verified"] == 2
     assert v["on_unverified"] == [[1.2, "fcw", "A"]] and not v["all_on_verified"]
     assert v["warning_events_on_verified"] == 1 and v["unverified_track_ticks"] == 1
-    assert v["frames"] == {"at_once": 2, "deferred": 2, "queue": 1}
+    assert v["frames"] == {"at_once": 2, "deferred": 2, "queue": 1, "withheld": 1}
     assert v["later"] == {"ok": 1}
     assert "NOT ALL" in "\n".join(lines(v))
     assert verification(_Cap(rx, ticks[:2], events))["all_on_verified"]
+
+
+# --- the urgent path is bounded: a flood of forged urgent frames ----------------------------
+
+
+def test_urgent_limiter_spares_honest_senders_and_bounds_a_flood() -> None:
+    from catc.security import UrgentLimiter
+
+    lim = UrgentLimiter(claims_per_s=100.0, claims_burst=20.0, per_id_hz=20.0,
+                        per_id_burst=5.0)
+    # an honest RV ahead at 10 Hz for a minute: never held
+    assert all(lim.admit(1, "ahead", 0.1 * k) for k in range(600))
+    # a flood of 1,000 frames/s under one id for 2 s: the burst, then 20/s
+    flood = sum(lim.admit(2, "ahead", 100.0 + 0.001 * k) for k in range(2000))
+    assert 5 + 40 - 1 <= flood <= 5 + 40 + 1
+    # 10,000 new ids/s for 1 s: the claims burst, then 100/s, whatever the ids
+    new = sum(lim.admit(1000 + k, "new", 200.0 + 0.0001 * k) for k in range(10_000))
+    assert 20 + 100 - 1 <= new <= 20 + 100 + 1
+    # meanwhile an RV beside the host (not a claim) is spared by the claims bucket
+    assert lim.admit(3, "side", 200.5)
+    # the ids forgotten once their bucket is full again: memory stays bounded
+    lim.admit(4, "ahead", 300.0)
+    assert len(lim._ids) == 1
+    with pytest.raises(ValueError):
+        UrgentLimiter(claims_per_s=0.0)
+
+
+def _forged(pki, tid: int, count: int, gen: int, accel: float = 0.0) -> bytes:
+    """A frame under ``tid`` that names pseudonym 0 as its signer (its digest, known to
+    the OBU) and is signed by another key: it passes the cheap checks, fails the ECDSA."""
+    p, thief = pki.pseudonyms[0], pki.pseudonyms[1]
+    frame = encode_frame(BSM(msg_cnt=count % 128, temp_id=tid, sec_mark=2000 + count,
+                             lat=42.3, lon=-83.7, elev=200.0, speed=13.4, heading=90.0,
+                             accel_long=accel))
+    signed = sign_bsm(frame, thief.key, thief.raw, gen, include_cert=False)
+    digest_at = signed.index(thief.hashed_id8)
+    return signed[:digest_at] + p.hashed_id8 + signed[digest_at + 8:]
+
+
+def test_held_urgent_frames_are_withheld_from_their_tick_and_counted(pki) -> None:
+    from catc.security import UrgentLimiter, time64_to_unix
+
+    rx = time64_to_unix(NOW)
+    fr, cap, dropped = _on_demand_frames(pki)  # no snapshot: every frame is "new"
+    fr.limiter = UrgentLimiter(claims_per_s=1.0, claims_burst=2.0)
+    fr.take("rv", _signed(pki, 1, NOW + 101), rx)  # the known signer's certificate
+    for k in range(6):  # forged hard braking under fresh ids: one claim token left
+        fr.take("rv", _forged(pki, 0x7000 + k, k, NOW + 110 + k, accel=-6.0), rx)
+    fr.take("rv", _signed(pki, 2, NOW + 120, tid=0x0ABC), rx)  # honest, new: held too
+    c = fr.counters
+    assert c["ondemand_at_once"] == 1 and c["ondemand_at_once_failed"] == 1
+    assert c["ondemand_held"] == 6 and c["ondemand_urgent_new"] == 8
+    # the queue verifies one before the tick: the newest, the honest one (top threat)
+    steps = iter([0.0, 1.0])
+    assert fr.work(0.5, lambda: next(steps), rx) == 1
+    due = fr.due(1e9, 1.0)
+    assert [m.temp_id for m in due] == [0x12345678, 0x0ABC]
+    assert fr.pending_rx[id(due[1])][2:] == ("ok", "queue")
+    assert fr.unverified(due) == frozenset()
+    assert c["ondemand_withheld"] == 5 and c["ondemand_skipped"] == 5 and not fr.queue
+    assert [(s, d["verify"]) for s, d in cap.frames].count(("withheld", "held")) == 5
+    assert not dropped  # nothing was stepped unverified: no late failure drops a track
+    frames = 8
+    assert frames == c["verify_ok"] + c["verify_rejected"] + c["ondemand_skipped"]
+
+
+@pytest.mark.parametrize("limit", [100.0, "off"])
+def test_a_flood_of_forged_urgent_frames_costs_bounded_ecdsa_and_fcw_still_warns(
+        tmp_path, limit):
+    """The host closes on a stopped RV 150 m ahead at 25 m/s.  Every tick an attacker
+    sends 6 forged frames under the RV's own TemporaryID (3 before and 3 after its real
+    one) and 20 claiming hard braking under fresh ids, all naming the RV's signer and
+    failing its ECDSA (2,000 claims/s, the default bound's rate, would be 200 a tick).
+    Bounded at 100 claims/s, the ECDSA run at once is at most the buckets' (20/s per id
+    after a burst of 5, 100/s of claims after a burst of 20, on the host's data clock);
+    unbounded, it is the whole flood.  Either way FCW warns on the real RV and no forged
+    frame is stepped."""
+    import argparse
+    import time
+
+    from catc.security import load_private_pem, unix_to_time64
+    from hil.pki import init as pki_init
+    from obu.daemon import Obu
+    from obu.options import DEFAULTS
+
+    pki_init(tmp_path / "pki", 2, 1.0, seed="flood", foreign=False)
+    cert = (tmp_path / "pki" / "pseudonym-0.oer").read_bytes()
+    key = load_private_pem((tmp_path / "pki" / "pseudonym-0.key.pem").read_bytes())
+    thief = load_private_pem((tmp_path / "pki" / "pseudonym-1.key.pem").read_bytes())
+    args = argparse.Namespace(**DEFAULTS)
+    args.verify, args.trust, args.predictor = "enforce", str(tmp_path / "pki"), "ca"
+    args.verify_workers, args.verify_urgent = 0, limit
+    obu = Obu(args)
+    obu._verify_before_step = lambda: None  # worked below, by hand
+    lat0, m = 42.3, 1.0 / 111_320.0
+    t_unix = time.time()
+    warned, ticks, forged, serial = [], 40, 0, iter(range(10**6))
+
+    def rv_frame(k: int, tid: int, signer, accel: float = 0.0, *, full: bool) -> bytes:
+        t = 10.0 + 0.1 * k
+        bsm = BSM(msg_cnt=k % 128, temp_id=tid, sec_mark=round(t * 1000) % 60000,
+                  lat=lat0 + 150.0 * m, lon=-83.7, elev=200.0, speed=0.0, heading=0.0,
+                  accel_long=accel, length=4.5, width=1.8)
+        gen = unix_to_time64(now) + next(serial)  # µs apart: no two frames are copies
+        data = sign_bsm(encode_frame(bsm), signer, cert, gen, include_cert=full)
+        if signer is thief:  # a bad signature; the envelope names the RV's certificate
+            data = data[:-1] + bytes([data[-1] ^ 1])
+        return data
+
+    for k in range(ticks):
+        now = t_unix + 0.1 * k
+        frames = [rv_frame(k, 0x0BAD0001, thief, full=False) for _ in range(3 if k else 0)]
+        frames.append(rv_frame(k, 0x0BAD0001, key, full=k == 0))  # its certificate first
+        frames += [rv_frame(k, 0x0BAD0001, thief, full=False) for _ in range(3)]
+        frames += [rv_frame(k, 0x5000_0000 + 100 * k + j, thief, -6.0, full=False)
+                   for j in range(20)]
+        forged += len(frames) - 1
+        for data in frames:
+            obu.frame("rv", data, now)
+        obu.frames.work(math.inf, time.monotonic, now)  # all of the queue, as idle time
+        host = BSM(msg_cnt=k % 128, temp_id=0x0000AAAA,
+                   sec_mark=round((10.0 + 0.1 * k) * 1000) % 60000,
+                   lat=lat0 + 25.0 * 0.1 * k * m, lon=-83.7, elev=200.0, speed=25.0,
+                   heading=0.0, accel_long=0.0, length=4.5, width=1.8)
+        believed = obu.frame("host", encode_frame(host), now)
+        obu.begin(believed)
+        snap = obu.tick(believed)
+        warned += [w for w in snap.warnings if w.app == "fcw"]
+        assert set(snap.ids.tolist()) <= {0x0BAD0001}  # no forged id ever tracked
+    obu.close()
+    c = obu.counters
+    assert warned and all(w.rv_id == 0x0BAD0001 for w in warned)
+    assert c["verify_bad-signature"] == forged and c["verify_ok"] == ticks
+    assert not c["ondemand_unverified_stepped"]
+    at_once_forged = c["ondemand_at_once_failed"]
+    print(f"limit {limit}: forged {forged}, ECDSA at once on forged {at_once_forged}, "
+          f"held {c['ondemand_held']}, withheld {c['ondemand_withheld']}")
+    if limit == "off":
+        assert at_once_forged == forged and not c["ondemand_held"]
+    else:
+        # per tick 2 per-id tokens (20/s) after a burst of 5; 10 claims after 20
+        bound = 5 + 2 * ticks + 20 + 10 * ticks
+        assert at_once_forged <= bound < forged
+        assert c["ondemand_held"] == forged - at_once_forged + (ticks - c["ondemand_at_once"])

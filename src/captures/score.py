@@ -199,12 +199,13 @@ def _frames(cap: Capture, names: dict[str, str], sent: dict) -> dict:
     one; ``unmatched`` an accepted frame of a vehicle of the run that the RVE never sent
     as an RV message (a copy with its count or secMark flipped, the host's own frame
     heard on the RV channel); ``phantom`` an accepted frame of an id the RVE never sent;
-    ``garbage`` (decode errors, by reason), ``rejected``, ``quarantined``, ``unticked``.
+    ``garbage`` (decode errors, by reason), ``rejected``, ``quarantined``, ``unticked``,
+    ``withheld`` (urgent frames the OBU held back unverified: ``obu run --verify-urgent``).
     The RV channel's frames are the sum of these; ``host_errors`` counts the host
     channel's decode errors, ``host_refused`` its frames the OBU did not believe, by
     reason (:class:`obu.host.HostGate`)."""
     counts = dict.fromkeys(("received", "duplicate", "unmatched", "phantom", "rejected",
-                            "quarantined", "unticked"), 0)
+                            "quarantined", "unticked", "withheld"), 0)
     garbage: Counter = Counter()
     security: Counter = Counter()
     host_errors = 0
@@ -246,7 +247,7 @@ def _frames(cap: Capture, names: dict[str, str], sent: dict) -> dict:
 
 
 #: The statuses of an rx record that are not a decode error.
-_STATUSES = ("ok", "rejected", "quarantined", "unticked")
+_STATUSES = ("ok", "rejected", "quarantined", "unticked", "withheld")
 
 
 def score(directory: Path) -> dict:
@@ -493,7 +494,7 @@ def table(r: dict) -> str:
         f"received {r['received']}, decode errors {sum(r['decode_errors'].values())}",
         "other frames at the RV port: " + ", ".join(
             f"{k} {r['frames'][k]}" for k in ("duplicate", "unmatched", "phantom", "rejected",
-                                              "quarantined", "unticked")),
+                                              "quarantined", "unticked", "withheld")),
         f"PTE95 {r['pte95_m']} m (mean {r['pte_mean_m']} m){part}",
         f"FCW accuracy {r['fcw_accuracy']}  (TP {f['tp']}, TN {f['tn']}, FP {f['fp']}, "
         f"FN {f['fn']}; by vehicle){part}",

@@ -5,7 +5,9 @@ From the capture alone, not from the OBU's counters:
 
 * **Per frame** (``obu.rx``'s ``verify`` and ``verdict``, :func:`hil.capture.schema.received`):
   verified ``at_once`` (on arrival), verified from the queue before its tick (``queue``),
-  stepped unverified (``deferred``), rejected (on arrival or from the queue, by reason),
+  stepped unverified (``deferred``), ``withheld`` (urgent, held back by the OBU's
+  limiter and still unverified at its tick: not stepped), rejected (on arrival or from
+  the queue, by reason),
   and what became of the frames stepped unverified or dropped from the queue
   (``obu.verify.jsonl``: verified ``ok`` or rejected later, ``skipped``, ``pending`` at the
   end).  Under ``--verify-policy all`` (or ``log``) every frame has its verdict from
@@ -55,6 +57,9 @@ def verification(cap: Any) -> dict[str, Any] | None:
             continue
         status = r.get("status")
         how = r.get("verify") or ("at_once" if r.get("verdict") else None)
+        if status == "withheld":  # urgent, over the limiter, unverified at its tick
+            frames["withheld"] += 1
+            continue
         if status == "rejected":
             rejected[r.get("verdict", "?")] += 1
             frames[f"rejected_{(how or 'at_once').replace('-', '_')}"] += 1
@@ -113,7 +118,7 @@ def lines(v: dict[str, Any] | None) -> list[str]:
     f = v["frames"]
     out = [f"verification ({v['policy']}): at once {f.get('at_once', 0)}, from the queue "
            f"before its tick {f.get('queue', 0)}, stepped unverified {f.get('deferred', 0)}, "
-           f"rejected {sum(v['rejected'].values())}"
+           f"withheld {f.get('withheld', 0)}, rejected {sum(v['rejected'].values())}"
            + "".join(f" ({k} {n})" for k, n in sorted(v["rejected"].items()))]
     if v["later"]:
         out.append("  after deferral: " + ", ".join(

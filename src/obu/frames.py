@@ -31,6 +31,10 @@ checked for misbehavior, counted, and an RV message queued for its tick.
   from the ``verify_`` ones, which name verdicts only).  So an RV frame is a decode
   error, or ``verify_ok + verify_rejected + ondemand_skipped`` + the frames still queued
   (``ondemand_queue``).
+  The ECDSA at once is bounded (``--verify-urgent``, :class:`catc.security.UrgentLimiter`):
+  an urgent frame beyond the bound is held (``ondemand_held``), queued at the highest
+  threat, and withheld from its tick unless verified first (``ondemand_withheld``, status
+  ``withheld``): never stepped unverified.
   Misbehavior detection sees a deferred frame only once verified before its tick.
 * Replays never reach misbehavior detection, in either mode.  A ``replay`` is a copy of
   a message already accepted, octet for octet or re-encoded: what it says about its
@@ -63,6 +67,7 @@ checked for misbehavior, counted, and an RV message queued for its tick.
 from __future__ import annotations
 
 import argparse
+import math
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -115,14 +120,17 @@ def claimed_sender(frame: bytes) -> tuple[int, int, int | None] | None:
 
 class Deferred:
     """A frame waiting in the verification queue: its BSM, what the cheap checks left for
-    the ECDSA (:class:`catc.security.Checked`), its receive time and octets, and whether
-    a tick stepped it unverified."""
+    the ECDSA (:class:`catc.security.Checked`), its receive time and octets, whether a
+    tick stepped it unverified, whether it is an urgent frame held back by the
+    :class:`~catc.security.UrgentLimiter` (its tick withholds it unless it is verified
+    first), and its key in the queue."""
 
-    __slots__ = ("bsm", "checked", "data", "rx_unix", "stepped")
+    __slots__ = ("bsm", "checked", "data", "held", "rx_unix", "seq", "stepped")
 
-    def __init__(self, bsm: BSM, checked: Any, rx_unix: float, data: bytes) -> None:
+    def __init__(self, bsm: BSM, checked: Any, rx_unix: float, data: bytes,
+                 held: bool = False) -> None:
         self.bsm, self.checked, self.rx_unix, self.data = bsm, checked, rx_unix, data
-        self.stepped = False
+        self.stepped, self.held, self.seq = False, held, 0
 
 
 class Frames:
@@ -173,6 +181,13 @@ class Frames:
                                      on_skip=self._skipped)
             self.threats = Threats(None)
             self.new_threats = Threats
+        #: verify on demand: the bound on the ECDSA run at once (None: unbounded)
+        self.limiter: Any = None
+        urgent = getattr(args, "verify_urgent", None)
+        if self.queue is not None and urgent not in (None, "off"):
+            from catc.security import UrgentLimiter
+
+            self.limiter = UrgentLimiter(float(urgent), max(1.0, float(urgent) / 5.0))
         #: --verify-workers: processes that run the queue's ECDSA (obu.ecdsa_worker)
         self.worker: Any = None
         if self.queue is not None and getattr(args, "verify_workers", 0):
@@ -257,11 +272,19 @@ class Frames:
             return None
         bsm = decode_frame(frame)
         priority = self.threats.priority(bsm)
+        if priority.urgent and self.limiter is not None and not self.limiter.admit(
+                bsm.temp_id, priority.why, self._data_time()):
+            self.counters[f"ondemand_urgent_{priority.why}"] += 1
+            self.counters["ondemand_held"] += 1
+            self._defer(Deferred(bsm, checked, rx_unix, data, held=True), math.inf,
+                        "held")
+            return None
         if priority.urgent:
             v = self.verifier.finish(checked)
             self._count(v.reason)
             self.counters[f"ondemand_urgent_{priority.why}"] += 1
             if not v.ok:
+                self.counters["ondemand_at_once_failed"] += 1
                 self._reject(rx_unix, data, frame, v.reason, "at-once")
                 return None
             self.counters["ondemand_at_once"] += 1
@@ -271,15 +294,25 @@ class Frames:
             self.pending.append(bsm)
             self.pending_rx[id(bsm)] = (rx_unix, data, "ok", "at-once")
             return None
-        self.counters["ondemand_deferred"] += 1
-        entry = Deferred(bsm, checked, rx_unix, data)
-        self.pending.append(bsm)
-        self.pending_rx[id(bsm)] = (rx_unix, data, None, "deferred")
-        self.deferred[id(bsm)] = entry
-        self.queue.push(entry, priority.threat, rx_unix)
-        if self.worker is not None and not self.counters["ondemand_deferred"] % PUMP_EVERY:
-            self.pump(rx_unix)  # a busy OBU seldom gets back to its loop: keep them fed
+        self._defer(Deferred(bsm, checked, rx_unix, data), priority.threat, "deferred")
         return None
+
+    def _data_time(self) -> float:
+        """The limiter's clock: the host's data time at its newest frame (0 before the
+        first), so that a replay faster than real time (``rve run --speed``) is not taken
+        for a flood."""
+        return self.last_host[2] if self.last_host is not None else 0.0
+
+    def _defer(self, entry: Deferred, threat: float, how: str) -> None:
+        """Queue ``entry`` for its ECDSA, its message waiting for its tick meanwhile."""
+        self.counters["ondemand_deferred"] += 1
+        bsm = entry.bsm
+        self.pending.append(bsm)
+        self.pending_rx[id(bsm)] = (entry.rx_unix, entry.data, None, how)
+        self.deferred[id(bsm)] = entry
+        entry.seq = self.queue.push(entry, threat, entry.rx_unix)
+        if self.worker is not None and not self.counters["ondemand_deferred"] % PUMP_EVERY:
+            self.pump(entry.rx_unix)  # a busy OBU seldom gets back to its loop: feed it
 
     def _skipped(self, entry: Deferred) -> None:
         """The queue dropped ``entry`` unverified (overload, or too old)."""
@@ -498,7 +531,28 @@ class Frames:
         """The RV messages a tick at ``now`` takes (:func:`catc.replay.split_due`), out of
         the queue; the rest stay."""
         due, self.pending = split_due(now, self.pending, future_s)
+        if self.limiter is not None and self.deferred:
+            due = [m for m in due if not self._withhold(m)]
         return due
+
+    def _withhold(self, m: BSM) -> bool:
+        """True when ``m`` is an urgent frame the limiter held back and still unverified:
+        it is not stepped (``ondemand_withheld``, status ``withheld``); out of the queue
+        (``ondemand_skipped``), or, at a worker, only its verdict will count."""
+        entry = self.deferred.get(id(m))
+        if entry is None or not entry.held:
+            return False
+        del self.deferred[id(m)]
+        rx_unix, data, _, _ = self.pending_rx.pop(id(m))
+        self.counters["ondemand_withheld"] += 1
+        if self.queue.remove(entry.seq):
+            self.counters["ondemand_skipped"] += 1
+            if self.cap is not None:
+                self.cap.late(rx_unix, m, "skipped", False)
+        if self.cap is not None:
+            self.cap.frame(rx_unix, "rv", data, "withheld", verify="held",
+                           sender=(m.temp_id, m.msg_cnt, m.sec_mark))
+        return True
 
     def received(self, messages: list[BSM]) -> list[Received]:
         """``messages`` with their receive time, octets and verdict, for the capture."""

@@ -11,7 +11,8 @@ from catc.predict import NAMES
 from hil.capture.schema import OBU_MBD, OBU_MBR
 from hil.config import add_can_arguments, address, non_negative, positive, web_address
 
-__all__ = ["DEFAULTS", "GPSD_PORT", "GnssSpec", "add_arguments", "gnss_spec", "latency"]
+__all__ = ["DEFAULTS", "GPSD_PORT", "GnssSpec", "add_arguments", "gnss_spec", "latency",
+           "urgent_limit"]
 
 #: gpsd's port.
 GPSD_PORT = 2947
@@ -21,7 +22,8 @@ DEFAULTS = {
     "predictor": "hgp", "capture": None, "overwrite": False, "duration": None, "idle_exit": None,
     "warnings": None, "collect_ms": 5.0, "can_interface": "virtual", "can_channel": None,
     "can_fd": False, "progress": True, "max_tracks": 1000, "verify": "off", "trust": None,
-    "verify_policy": "on-demand", "verify_queue": 2000, "verify_workers": 1, "mbd": False,
+    "verify_policy": "on-demand", "verify_queue": 2000, "verify_workers": 1,
+    "verify_urgent": 2000.0, "mbd": False,
     "web": None, "host_id": None, "signatures": "strict",
     "capture_max_mb": None, "host_source": "channel", "vehicle": "toyota-rav4-2017",
     "dbc": None, "vehicle_can_interface": "virtual", "vehicle_can_channel": None,
@@ -46,6 +48,11 @@ class GnssSpec:
             return f"serial:{self.path}" + (f"@{self.baud}" if self.baud else "")
         host = f"[{self.host}]" if ":" in self.host else self.host
         return f"{self.kind}:{host}:{self.port}"
+
+
+def urgent_limit(text: str) -> float | str:
+    """``--verify-urgent``: ``off`` or a number of ECDSA/s above 0; the argparse ``type``."""
+    return "off" if text == "off" else positive(text)
 
 
 def gnss_spec(text: str) -> GnssSpec:
@@ -142,6 +149,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--verify-workers", type=int, metavar="N",
                    help="verify on demand: processes (nice +10) that verify the queued "
                         "frames beside the OBU's own idle time; 0: none (default 1)")
+    p.add_argument("--verify-urgent", type=urgent_limit, metavar="N|off",
+                   help="verify on demand: the ECDSA/s run at once for what frames claim of "
+                        "themselves (a new RV, hard braking), all senders together, and "
+                        "at most 20/s per TemporaryID; an urgent frame beyond waits first "
+                        "in the queue and is withheld from its tick until verified "
+                        "(ondemand_held, ondemand_withheld); off: unbounded (default 2000)")
     p.add_argument("--signatures", choices=("strict", "standard"),
                    help="signature encodings --verify accepts: strict (default: rSig x-only "
                         "and low s, the one form nobody can derive from another) or "

@@ -117,9 +117,17 @@ from catc.security._pki import (
 )
 from catc.security._replay import ReplayCache
 from catc.security._verify import VERDICT_REASONS, Checked, Verdict, Verifier, canonical
-from catc.security.ondemand import OnDemandConfig, Priority, Threats, VerifyQueue
+from catc.security.ondemand import (
+    CLAIMS,
+    OnDemandConfig,
+    Priority,
+    Threats,
+    UrgentLimiter,
+    VerifyQueue,
+)
 
 __all__ = [
+    "CLAIMS",
     "P256_ORDER",
     "VERDICT_REASONS",
     "Checked",
@@ -129,6 +137,7 @@ __all__ = [
     "Priority",
     "ReplayCache",
     "Threats",
+    "UrgentLimiter",
     "Verdict",
     "Verifier",
     "VerifyQueue",

@@ -26,6 +26,12 @@ within a threat.  Bounded: beyond ``max_len`` the oldest message of the lowest t
 dropped, and a message waiting longer than ``max_age_s`` is dropped when it comes to the
 front; each drop goes to ``on_skip`` (the OBU counts it as ``verify_skipped``), never
 silently.
+
+:class:`UrgentLimiter` bounds the urgent path: per TemporaryID, and for the reasons a
+message claims for itself (``new``, ``braking``) over all senders.  An urgent message
+beyond it waits in the queue at the highest threat, and the OBU withholds it from its tick
+until it is verified: a flood of forged urgent frames then costs the OBU a bounded share
+of its ECDSA, and none of them reaches the map unverified.
 """
 
 from __future__ import annotations
@@ -43,10 +49,14 @@ from catc.apps.fcw import FcwConfig, warning_range
 from catc.bsm import BSM
 from catc.cam import HARD_BRAKING_DECEL, hard_braking
 
-__all__ = ["URGENT_REASONS", "OnDemandConfig", "Priority", "Threats", "VerifyQueue"]
+__all__ = ["CLAIMS", "URGENT_REASONS", "OnDemandConfig", "Priority", "Threats", "UrgentLimiter",
+           "VerifyQueue"]
 
 #: Why a message is verified at once (:class:`Priority`.why; ``deferred`` otherwise).
 URGENT_REASONS = ("new", "braking", "ahead", "side", "unverified")
+#: The urgent reasons a message gives itself, whoever sent it: an unheard TemporaryID, a
+#: hard-braking flag (:class:`UrgentLimiter` bounds them together).
+CLAIMS = ("new", "braking")
 
 _LEFT, _CENTRE, _RIGHT = 1, 2, 3  # catc.classify.LATERAL_CODES
 _ONGOING = 0  # catc.classify.DIRECTION_CODES
@@ -151,6 +161,61 @@ class Threats:
         return row
 
 
+class UrgentLimiter:
+    """Bounds the ECDSA the urgent path runs at once, so that no sender can make the OBU
+    verify at once whatever it sends (a flood of forged frames that claim a new RV or hard
+    braking, or that carry the TemporaryID of an RV ahead, each with a known signer's
+    digest and a bad signature, would otherwise take a core).  Two token buckets:
+
+    * per TemporaryID, ``per_id_hz`` (default 20/s: twice SAE J2945/1's highest BSM rate)
+      with a burst of ``per_id_burst``: an honest sender never meets it;
+    * for the :data:`CLAIMS` of all senders together, ``claims_per_s`` (default 2,000/s,
+      ~15 % of a core's ECDSA) with a burst of ``claims_burst`` (400: 1,000 RVs heard at
+      once come in within a few ticks).
+
+    :meth:`admit` says whether an urgent message may be verified now (a token taken from
+    each bucket it needs) or must wait: the OBU then queues it at the highest threat and
+    withholds it from its tick unless it is verified before (``obu.frames``).  Times are
+    seconds on any clock that does not go back."""
+
+    def __init__(self, claims_per_s: float = 2000.0, claims_burst: float = 400.0,
+                 per_id_hz: float = 20.0, per_id_burst: float = 5.0) -> None:
+        if not min(claims_per_s, claims_burst, per_id_hz, per_id_burst) > 0.0:
+            raise ValueError("the urgent limits must be positive")
+        self.claims_per_s, self.claims_burst = claims_per_s, claims_burst
+        self.per_id_hz, self.per_id_burst = per_id_hz, per_id_burst
+        self._claims = (claims_burst, -math.inf)  # (tokens, at)
+        self._ids: dict[int, tuple[float, float]] = {}
+        self._pruned = -math.inf
+
+    @staticmethod
+    def _tokens(state: tuple[float, float], rate: float, burst: float, t: float) -> float:
+        tokens, at = state
+        return min(burst, tokens + max(t - at, 0.0) * rate) if at > -math.inf else burst
+
+    def admit(self, temp_id: int, why: str, t: float) -> bool:
+        """Whether the urgent message of ``temp_id`` (urgent for reason ``why``) received
+        at ``t`` may have its ECDSA now."""
+        claims = why in CLAIMS
+        if claims:
+            pool = self._tokens(self._claims, self.claims_per_s, self.claims_burst, t)
+            if pool < 1.0:
+                return False
+        own = self._ids.get(temp_id)
+        mine = (self.per_id_burst if own is None
+                else self._tokens(own, self.per_id_hz, self.per_id_burst, t))
+        if mine < 1.0:
+            return False
+        if claims:
+            self._claims = (pool - 1.0, t)
+        self._ids[temp_id] = (mine - 1.0, t)
+        if t - self._pruned >= 1.0:  # forget the ids whose bucket is full again
+            self._pruned = t
+            full = self.per_id_burst / self.per_id_hz
+            self._ids = {k: v for k, v in self._ids.items() if t - v[1] < full}
+        return True
+
+
 T = TypeVar("T")
 
 
@@ -193,9 +258,9 @@ class VerifyQueue(Generic[T]):
         heapq.heapify(self._worst)
         self._fifo = deque(sorted((t, s) for s, (_, t, _) in live))
 
-    def push(self, item: T, threat: float, t: float) -> None:
+    def push(self, item: T, threat: float, t: float) -> int:
         """Queue ``item`` (received at ``t``); beyond ``max_len``, the oldest of the lowest
-        threat is dropped (possibly this one)."""
+        threat is dropped (possibly this one).  Its key, for :meth:`remove`."""
         self._seq += 1
         seq = self._seq
         self._live[seq] = (threat, t, item)
@@ -207,6 +272,15 @@ class VerifyQueue(Generic[T]):
             if victim in self._live:
                 self._skip(victim)
         self._compact()
+        return seq
+
+    def remove(self, key: int) -> bool:
+        """Take the item of ``key`` (:meth:`push`'s) out, not counted as skipped; False
+        when it is no longer queued (popped, skipped or removed)."""
+        if self._live.pop(key, None) is None:
+            return False
+        self._compact()
+        return True
 
     def expire(self, now: float) -> None:
         """Drop every message received before ``now - max_age_s``."""

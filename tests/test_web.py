@@ -317,6 +317,36 @@ def test_live_view_draws_each_rv_at_its_pixel(browser):
             page.close()
 
 
+def test_an_unverified_track_is_drawn_apart(browser):
+    """Verify on demand: a track whose latest message is unverified (the tick's
+    ``unverified``) is drawn hollow and dashed in amber, never filled in its zone's
+    colour, and counted in the panel; a verified one beside it is filled."""
+    hx, hy, heading = _HOST
+    ticks = [{"t": 12.3, "sec_mark": 12300, "host": [hx, hy], "host_heading": heading,
+              "host_speed": 10.0, "warnings": [], "tracked": 2, "unverified": ["0000000B"]}]
+    rvs = _RVS[:2]
+    tracks = [{"t": 12.3, "id": rid, "x": x, "y": y, "heading": heading, "speed": 10.0,
+               "zone": _ZONES[zone][0], "predicted_zone": _ZONES[zone][0], "fresh": True,
+               "age": 0.0, "source": "bsm", "predicted_x": x, "predicted_y": y}
+              for rid, x, y, zone in rvs]
+    with _serve_replay(ticks, tracks) as base:
+        page = browser.new_page(viewport={"width": 1280, "height": 800})
+        try:
+            page.goto(base + "/")
+            page.wait_for_function("() => document.getElementById('map').dataset.t == '12.3'")
+            assert page.get_attribute("#map", "data-unverified") == "1"
+            view = page.evaluate("() => { const v = liveView.view(); return {k: v.k, "
+                                 "ox: v.ox, oy: v.oy, a: v.a, hx: v.hx, hy: v.hy}; }")
+            centres = _pixels(page, [_to_pixel(view, x, y) for _, x, y, _ in rvs], half=1)
+            for (rid, _, _, zone), px in zip(rvs, centres, strict=True):
+                filled = [max(abs(a - b) for a, b in zip(p, _ZONES[zone][1], strict=True))
+                          <= 3 for p in px]
+                assert all(filled) if rid == "0000000A" else not any(filled), (rid, px)
+            assert "unverified tracks\t1" in page.inner_text("#panel")
+        finally:
+            page.close()
+
+
 # --- who may look: text not HTML, Host, Origin, the cap, clients that do not read -----------
 
 #: Strings a crafted capture could hold: each sets window.__pwned if the page runs it.

@@ -466,4 +466,5 @@ class Replay:
                       "decode_errors": self.counters.get("decode_errors", 0),
                       "rejected": self.counters.get("verify_rejected", 0)},
             "truth": truth,
+            "unverified": list(tk.get("unverified", ())),
         }

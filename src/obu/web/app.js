@@ -8,6 +8,8 @@ const ctx = canvas.getContext("2d");
 const LANE = 3.6;
 const COLORS = { centre: "#d62728", left: "#1f77b4", right: "#2ca02c", behind: "#9da5ad",
                  oncoming: "#9467bd", other: "#8c8c8c" };
+// a track whose latest message is not verified (verify on demand): hollow, dashed, amber
+const UNVERIFIED = "#ff7f0e";
 let state = null;
 let scale = 7;            // px per metre
 let pan = { x: 0, y: 0 }; // screen offset, px
@@ -124,7 +126,8 @@ function draw() {
       ctx.setLineDash([]);
     }
   }
-  let drawn = 0;
+  let drawn = 0, doubtful = 0;
+  const unverified = new Set(state.unverified || []);
   ctx.font = `${11 * devicePixelRatio}px system-ui, sans-serif`;
   for (const r of state.rvs) {
     const color = zoneColor(r.zone);
@@ -136,18 +139,28 @@ function draw() {
     ctx.beginPath(); ctx.arc(qx, qy, 3 * devicePixelRatio, 0, 2 * Math.PI);
     ctx.fillStyle = zoneColor(r.pzone); ctx.fill();
     ctx.globalAlpha = 1;
-    box(v, r.x, r.y, r.heading, 4.8, 1.9, r.fresh ? color : null, r.fresh ? null : color, 2.5);
+    if (unverified.has(r.id)) {  // no application sees it: never filled
+      ctx.setLineDash([4, 3]);
+      box(v, r.x, r.y, r.heading, 4.8, 1.9, null, UNVERIFIED, 2.5);
+      ctx.setLineDash([]);
+      doubtful++;
+    } else {
+      box(v, r.x, r.y, r.heading, 4.8, 1.9, r.fresh ? color : null, r.fresh ? null : color,
+          2.5);
+    }
     if (warned.has(r.id)) {
       ctx.strokeStyle = "#d62728"; ctx.lineWidth = 3 * devicePixelRatio;
       ctx.beginPath(); ctx.arc(cx, cy, Math.max(14, 4 * v.k), 0, 2 * Math.PI); ctx.stroke();
     }
     ctx.fillStyle = "#333";
-    const label = r.id.slice(-4) + (r.fresh ? "" : ` +${r.age.toFixed(1)}s`);
+    const label = r.id.slice(-4) + (r.fresh ? "" : ` +${r.age.toFixed(1)}s`) +
+      (unverified.has(r.id) ? " unverified" : "");
     ctx.fillText(label, cx + 8 * devicePixelRatio, cy - 8 * devicePixelRatio);
     drawn++;
   }
   box(v, h.x, h.y, h.heading, h.length || 4.8, h.width || 1.9, "#1d2733", null);
   canvas.dataset.rvs = String(drawn);
+  canvas.dataset.unverified = String(doubtful);
   canvas.dataset.t = state.t == null ? "" : String(state.t);
   // scale bar
   const m = [5, 10, 20, 50, 100, 200].find(x => x * v.k > 80) || 200;
@@ -161,6 +174,7 @@ function panel() {
     ["time", state.t == null ? "–" : `${state.t.toFixed(1)} s`],
     ["tracked RVs", state.rvs.length],
     ["predicted now", state.rvs.filter(r => !r.fresh).length],
+    ["unverified tracks", (state.unverified || []).length],
     ["frames/s", p.frames_per_s ?? "–"],
     ["decode errors", p.decode_errors ?? 0],
     ["security rejections", p.rejected ?? 0],

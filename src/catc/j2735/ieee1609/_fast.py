@@ -48,6 +48,9 @@ from catc.j2735.ieee1609._data import Unwrapped
 
 #: Certificates remembered by their octets (a few thousand RVs each repeat theirs).
 MAX_CERTIFICATES = 4096
+#: Octets of the shortest signed data in the layout: 03 81 00 40 03 80 00 (an empty
+#: frame), 40 01 psid, generationTime, 80 and a HashedId8, 80 80 r s.
+_SHORTEST = 7 + 3 + 8 + 9 + 66
 
 _certs: OrderedDict[bytes, Certificate] = OrderedDict()
 _new = object.__new__
@@ -74,7 +77,7 @@ def fast_open(data: bytes) -> Unwrapped | None:
     if type(data) is not bytes:
         data = bytes(data)
     n = len(data)
-    if n < 100 or data[0] != 0x03:
+    if n < _SHORTEST or data[0] != 0x03:
         return None
     head = data[1]
     if head == 0x81:  # Ieee1609Dot2Data signedData, no WSM around it
@@ -90,12 +93,12 @@ def fast_open(data: bytes) -> Unwrapped | None:
             size, start = (first & 0x3F) << 8 | data[4], 5
         else:
             return None
-        if start + size > n or size < 96 or data[start] != 0x03 or data[start + 1] != 0x81:
+        if start + size > n or size < _SHORTEST or data[start] != 0x03 or data[start + 1] != 0x81:
             return None
         p = data[start:start + size]
     else:
         return None
-    # p: 03 81 00 40 03 80 L frame ...; size >= 96 from here on
+    # p: 03 81 00 40 03 80 L frame ...; size >= _SHORTEST from here on
     if p[2] != 0x00 or p[3] != 0x40 or p[4] != 0x03 or p[5] != 0x80:
         return None
     length = p[6]

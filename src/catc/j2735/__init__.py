@@ -42,6 +42,13 @@ def open_envelope(data: bytes) -> tuple[bytes, Unwrapped | None]:
     fast = fast_open(data)
     if fast is not None:
         return fast.frame, fast
+    return open_envelope_general(data)
+
+
+def open_envelope_general(data: bytes) -> tuple[bytes, Unwrapped | None]:
+    """:func:`open_envelope` by the general parsers alone, without the fast path (what
+    the tests hold the fast path to).  A certificate signer it reads is remembered for
+    :func:`catc.j2735.ieee1609.fast_open`."""
     wsmp_psid = None
     if looks_like_wsmp(data):
         data, wsmp_psid = unwrap_wsmp(data)
@@ -76,4 +83,5 @@ __all__ = [
     "encode_frame",
     "frame_message_id",
     "open_envelope",
+    "open_envelope_general",
 ]

@@ -8,8 +8,10 @@ from catc.j2735.ieee1609 import (
     PROTOCOL_VERSION,
     WSMP_VERSION,
     Unwrapped,
+    fast_open,
     looks_like_1609,
     looks_like_wsmp,
+    remember,
     unwrap,
     unwrap_wsmp,
 )
@@ -32,7 +34,21 @@ def open_envelope(data: bytes) -> tuple[bytes, Unwrapped | None]:
     version says that nothing after it can be read (the version field of a WSMP
     N-header with TPID 0 or 1 after it; a version octet below 8 before a 1609.2 content
     tag, where a UPER MessageFrame would have a messageId of 64-66 plus a multiple of 128,
-    none of them a J2735 message)."""
+    none of them a J2735 message).
+
+    A signed BSM in the usual layout is sliced by :func:`catc.j2735.ieee1609.fast_open`
+    (the same result); anything else goes through the general parsers, which also
+    remember each certificate signer for the fast path."""
+    fast = fast_open(data)
+    if fast is not None:
+        return fast.frame, fast
+    return open_envelope_general(data)
+
+
+def open_envelope_general(data: bytes) -> tuple[bytes, Unwrapped | None]:
+    """:func:`open_envelope` by the general parsers alone, without the fast path (what
+    the tests hold the fast path to).  A certificate signer it reads is remembered for
+    :func:`catc.j2735.ieee1609.fast_open`."""
     wsmp_psid = None
     if looks_like_wsmp(data):
         data, wsmp_psid = unwrap_wsmp(data)
@@ -40,6 +56,8 @@ def open_envelope(data: bytes) -> tuple[bytes, Unwrapped | None]:
         raise DecodeError("unsupported", f"WSMP version {data[0]}, not {WSMP_VERSION}")
     if looks_like_1609(data):
         u = unwrap(data)
+        if u.signer_kind == "certificate":
+            remember(u.signer_certs[0])
         if wsmp_psid is not None:
             u = dataclasses.replace(u, wsmp_psid=wsmp_psid)
         return u.frame, u
@@ -65,4 +83,5 @@ __all__ = [
     "encode_frame",
     "frame_message_id",
     "open_envelope",
+    "open_envelope_general",
 ]

@@ -29,6 +29,10 @@ VERDICT_REASONS = ("ok", "unsigned", "replay", "unsupported", "nested", "wsmp-ps
                    "stale", "message-expired", "bad-signature")
 
 _HALF_ORDER = P256_ORDER // 2  # (n - 1) / 2: the largest low s
+_ZERO = bytes(32)
+_ORDER_OCTETS = P256_ORDER.to_bytes(32, "big")
+_HALF_OCTETS = _HALF_ORDER.to_bytes(32, "big")
+_new = object.__new__
 
 @dataclass(frozen=True)
 class Verdict:
@@ -105,8 +109,9 @@ def canonical(u: Unwrapped) -> bool:
     sig = u.signature
     if u.signature_r_form != "x-only" or sig is None or len(sig) != 64:
         return False
-    r, s = int.from_bytes(sig[:32], "big"), int.from_bytes(sig[32:], "big")
-    return 0 < r < P256_ORDER and 0 < s <= _HALF_ORDER
+    # 32-octet big-endian numbers compare as octet strings compare
+    r, s = bytes(sig[:32]), bytes(sig[32:])
+    return _ZERO < r < _ORDER_OCTETS and _ZERO < s <= _HALF_OCTETS
 
 
 class Verifier:
@@ -269,45 +274,53 @@ class Verifier:
         if u.security != "signed":
             return Verdict(False, "unsigned", u.frame)
         assert u.tbs_data is not None
-
-        def fail(reason: str) -> Verdict:
-            return Verdict(False, reason, u.frame, u.signer_digest)
-
+        # the checks in their order, each failure a Verdict(False, reason, frame, digest);
+        # written out flat (no closure, attributes read once): this runs for every frame
         tbs_hash = sha256(u.tbs_data)
-        if self.replays is not None and self.replays.seen(tbs_hash, now_us):
-            return fail("replay")
+        replays, psid = self.replays, self.psid
+        if replays is not None and replays.seen(tbs_hash, now_us):
+            return Verdict(False, "replay", u.frame, u.signer_digest)
+        reason = None
         if u.unsupported:
-            return fail("unsupported")
-        if u.signed_layers > 1:
-            return fail("nested")
-        if u.wsmp_psid is not None and u.wsmp_psid != self.psid:
-            return fail("wsmp-psid")
-        if u.signer_kind == "digest":
-            signer = self._lookup(u.signer_digest)
-            if signer is None:
-                return fail("unknown-signer")
-        elif u.signer_kind == "certificate":
-            signer = self._chain(u.signer_certs)
-            if signer is None:
-                return fail("chain")
-        else:  # "self": self-signed data carries no key to verify it with
-            return Verdict(False, "unknown-signer", u.frame, None)
-        if u.psid != self.psid or self.psid not in signer.cert.app_psids:
-            return fail("wrong-psid")
+            reason = "unsupported"
+        elif u.signed_layers > 1:
+            reason = "nested"
+        elif u.wsmp_psid is not None and u.wsmp_psid != psid:
+            reason = "wsmp-psid"
+        else:
+            kind = u.signer_kind
+            if kind == "digest":
+                signer = self._lookup(u.signer_digest)
+                if signer is None:
+                    reason = "unknown-signer"
+            elif kind == "certificate":
+                signer = self._chain(u.signer_certs)
+                if signer is None:
+                    reason = "chain"
+            else:  # "self": self-signed data carries no key to verify it with
+                return Verdict(False, "unknown-signer", u.frame, None)
+        if reason is not None:
+            return Verdict(False, reason, u.frame, u.signer_digest)
         generation, expiry = u.generation_time_us, u.expiry_time_us
-        for instant in (now_us, generation):
-            if instant is not None and not (
-                signer.not_before <= instant // 1_000_000 < signer.not_after
-            ):
-                return fail("expired")
-        if (generation is None or now_us - generation > self.max_age_us
+        nb, na = signer.not_before, signer.not_after
+        if u.psid != psid or psid not in signer.cert.app_psids:
+            reason = "wrong-psid"
+        elif (now_us is not None and not nb <= now_us // 1_000_000 < na) or (
+                generation is not None and not nb <= generation // 1_000_000 < na):
+            reason = "expired"
+        elif (generation is None or now_us - generation > self.max_age_us
                 or generation - now_us > self.max_future_us):
-            return fail("stale")
-        if expiry is not None and (expiry < now_us or expiry < generation):
-            return fail("message-expired")
-        if self.canonical_only and not canonical(u):
-            return fail("non-canonical")
-        return Checked(u, tbs_hash, signer, now_us, generation)
+            reason = "stale"
+        elif expiry is not None and (expiry < now_us or expiry < generation):
+            reason = "message-expired"
+        elif self.canonical_only and not canonical(u):
+            reason = "non-canonical"
+        else:
+            checked = _new(Checked)  # Checked(u, tbs_hash, ...) without its frozen __init__
+            checked.__dict__.update(unwrapped=u, tbs_hash=tbs_hash, signer=signer,
+                                    now_us=now_us, generation_us=generation)
+            return checked
+        return Verdict(False, reason, u.frame, u.signer_digest)
 
     def finish(self, checked: Checked) -> Verdict:
         """The message's ECDSA verification, after :meth:`check` (at once, or later: the

@@ -14,7 +14,9 @@ part, all written as readers over an :class:`io.BytesIO` and builders of octets:
 - ``_data``: §6.3 ``Ieee1609Dot2Data``, :func:`unwrap`, :func:`wrap_unsecured`,
   :func:`tbs_data` and :func:`build_signed`;
 - ``_wsmp``: the WAVE Short Message (IEEE 1609.3-2016 §8.3), :func:`wrap_wsmp` and
-  :func:`unwrap_wsmp`.
+  :func:`unwrap_wsmp`;
+- ``_fast``: :func:`fast_open`, the receive fast path for the usual layout of a signed
+  BSM, which leaves everything else (errors included) to the parsers above.
 
 Nothing here does cryptography: signatures are made and verified by
 :mod:`catc.security`.  The only hash computed is the HashedId8 of a certificate
@@ -43,6 +45,7 @@ from catc.j2735.ieee1609._data import (
     unwrap,
     wrap_unsecured,
 )
+from catc.j2735.ieee1609._fast import fast_open, remember
 from catc.j2735.ieee1609._wsmp import (
     ETHERTYPE_WSMP,
     WSMP_VERSION,
@@ -62,9 +65,11 @@ __all__ = [
     "build_certificate",
     "build_signed",
     "build_tbs_certificate",
+    "fast_open",
     "looks_like_1609",
     "looks_like_wsmp",
     "parse_certificate",
+    "remember",
     "tbs_data",
     "unwrap",
     "unwrap_wsmp",

@@ -11,13 +11,18 @@ from __future__ import annotations
 from catc.bsm import BSM
 from catc.errors import DecodeError, EncodeError
 from catc.j2735.bits import BitReader, BitWriter
-from catc.j2735.uper._core import CORE_BITS, core_raw, decode_core
+from catc.j2735.uper._core import CORE_BITS, core_bsm, core_raw, decode_core
 from catc.j2735.uper._elements import skip_extensions
 from catc.j2735.uper._part2 import check_part2, read_open_type
 from catc.j2735.uper._vse import VEHICLE_SAFETY_EXT, encode_vse, read_vse
 
 #: DSRCmsgID of a BasicSafetyMessage.
 BSM_MESSAGE_ID = 20
+_CORE_MASK = (1 << CORE_BITS) - 1
+#: The octets that hold a BSM's first three bits (extension, partII and regional
+#: present) and its BSMcoreData.
+_HEAD_OCTETS = (3 + CORE_BITS + 7) // 8
+_HEAD_SHIFT = 8 * _HEAD_OCTETS - 3 - CORE_BITS
 
 
 def _read_bsm(r: BitReader) -> BSM:
@@ -89,6 +94,9 @@ def encode_bsm(m: BSM) -> bytes:
 def decode_bsm(data: bytes) -> BSM:
     """Decode a bare UPER BasicSafetyMessage.  Trailing octets are ignored."""
     try:
+        if len(data) >= _HEAD_OCTETS and data[0] < 0x20:  # BSMcoreData only, no BitReader
+            v = int.from_bytes(data[:_HEAD_OCTETS], "big") >> _HEAD_SHIFT
+            return core_bsm(decode_core(v & _CORE_MASK))
         return _read_bsm(BitReader(data))
     except (ValueError, TypeError) as exc:  # enum construction inside a malformed frame
         if isinstance(exc, DecodeError):

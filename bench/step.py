@@ -7,7 +7,10 @@ own speed (18–32 m/s), a slow speed oscillation (±1.5 m/s, 0.3 rad/s) and sma
 wobble, so every predictor has something to learn.  Every RV sends a BSM at 10 Hz and
 each message is lost with probability 50 % (``catc.channel``, seeded): each tick about
 half the RVs have no fresh BSM and are predicted, with ``hgp`` by default — the issue's
-"half of them without a fresh BSM and predicted with hgp".  The peer row is the same run
+"half of them without a fresh BSM and predicted with hgp".  TemporaryIDs are CRC-32s of
+names, as the RVE sends them.  The peer rows are the same run with ``hgp-objects``, the
+HGP as one ``HgpPredictor`` object per RV instead of the rows of one ``HgpTable`` (the same
+numbers, bit for bit: tests/test_hgp_table.py; "p99 vs" is the table's p99 over it), and
 with ``ca`` (constant acceleration): what tracking costs without a learned predictor.
 
 Warm-up ticks (``--warmup``, default 80: the HGP windows of 30 received samples fill at
@@ -15,7 +18,7 @@ PER 50 % after ~6 s) are run and not timed; then ``--ticks`` steps are timed one
 with ``time.perf_counter``.  The BSMs of every tick are built before timing.
 
     python bench/step.py [--json] [--rvs 50,200,500] [--ticks 100] [--warmup 80]
-                         [--predictors hgp,ca] [--per 0.5] [--profile N]
+                         [--predictors hgp,hgp-objects,ca] [--per 0.5] [--profile N]
 
 ``--per 0`` is the OBU load bench's case (``bench/obu_load.py --per 0``): every RV fresh
 at every tick, every window full and regular.
@@ -50,6 +53,7 @@ from catc.bsm import BSM  # noqa: E402
 from catc.cam import CamConfig, ContextAwareMap  # noqa: E402
 from catc.channel import bernoulli_received  # noqa: E402
 from catc.geo import EnuFrame  # noqa: E402
+from catc.replay import temp_id  # noqa: E402
 from hil.gcpolicy import GcPolicy  # noqa: E402
 
 ORIGIN = (46.89, 16.84, 0.0)
@@ -57,6 +61,9 @@ LANE = 3.6
 PER = 0.5
 DT = 0.1
 TARGETS = ((500, 20.0), (1000, 40.0))  # (RVs, p99 ms), at PER 50 %
+#: The HGP with one HgpPredictor object per RV (CamConfig.hgp_table=False): the "before"
+#: of the HGP table (issue 30), for --predictors hgp,hgp-objects,ca.
+OBJECTS = "hgp-objects"
 
 
 def scene(n: int, ticks: int, seed: int = 0) -> list[tuple[float, BSM, list[BSM]]]:
@@ -86,13 +93,17 @@ def scene(n: int, ticks: int, seed: int = 0) -> list[tuple[float, BSM, list[BSM]
     lat, lon, _ = frame.to_geodetic(x, y, 0.0)
     hv_lat, hv_lon, _ = frame.to_geodetic(np.zeros(ticks), hv_y, 0.0)
     received = np.array([bernoulli_received(seed, i, ticks, PER) for i in range(n)]).T
+    # TemporaryIDs as the RVE makes them (CRC-32 of a name): spread over 32 bits.  Ids
+    # 1..N would put vehicles 0.6 m apart one bit apart, and the CAM would drop ~15 % of
+    # their messages as bit-flipped copies (the shadow check) and create tracks late.
+    ids = [temp_id(f"rv{i}") for i in range(n)]
     out = []
     for k in range(ticks):
         sm = round(t[k] * 1000.0) % 60_000
         host = BSM(msg_cnt=k % 128, temp_id=0xFFFFFFFF, sec_mark=sm, lat=float(hv_lat[k]),
                    lon=float(hv_lon[k]), speed=25.0, heading=0.0, accel_long=0.0,
                    length=4.8, width=1.9)
-        msgs = [BSM(msg_cnt=k % 128, temp_id=i + 1, sec_mark=sm, lat=float(lat[k, i]),
+        msgs = [BSM(msg_cnt=k % 128, temp_id=ids[i], sec_mark=sm, lat=float(lat[k, i]),
                     lon=float(lon[k, i]), speed=float(speed[k, i]),
                     heading=float(heading[k, i] % 360.0), accel_long=float(accel[k, i]),
                     yaw_rate=float(yaw[k, i]), length=4.8, width=1.9)
@@ -108,7 +119,9 @@ def run(n: int, predictor: str, ticks: int, warmup: int,
     # scene's BSMs are the input, not the OBU's state: a daemon holds a tick's worth),
     # and collections run after the steps, not timed as a step (reported).
     policy = GcPolicy()
-    cam = ContextAwareMap(CamConfig(predictor=predictor, origin=ORIGIN), SafetyApps())
+    objects = predictor == OBJECTS  # the HGP as one object per RV, not a table's rows
+    cam = ContextAwareMap(CamConfig(predictor="hgp" if objects else predictor, origin=ORIGIN,
+                                    hgp_table=not objects), SafetyApps())
     for now, host, msgs in data[:warmup]:
         cam.step(now, host, msgs)
         policy.after_tick()
@@ -147,7 +160,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rvs", default="50,200,500", help="RV counts (default 50,200,500)")
     ap.add_argument("--ticks", type=int, default=100, help="timed steps per run")
     ap.add_argument("--warmup", type=int, default=80, help="untimed steps first")
-    ap.add_argument("--predictors", default="hgp,ca", help="first is the target's")
+    ap.add_argument("--predictors", default="hgp,hgp-objects,ca",
+                    help="first is the target's; hgp-objects: the HGP as one object per RV "
+                         "(default hgp,hgp-objects,ca)")
     ap.add_argument("--per", type=float, default=PER,
                     help="packet error rate of the scene, 0..1 (default 0.5)")
     ap.add_argument("--profile", type=int, default=0, metavar="N",
@@ -184,14 +199,14 @@ def main(argv: list[str] | None = None) -> int:
     peer = predictors[1] if len(predictors) > 1 else None
     print(f"CA-TC step time, one core, PER {PER:.0%} (≈ {PER:.0%} of the RVs predicted "
           "each tick)")
-    print(f"{'RVs':>5} {'predictor':>9} {'median ms':>10} {'p99 ms':>8} {'max ms':>8} "
+    print(f"{'RVs':>5} {'predictor':>11} {'median ms':>10} {'p99 ms':>8} {'max ms':>8} "
           f"{'fresh':>6}" + (f" {'p99 vs ' + peer:>12}" if peer else ""))
     for r in rows:
         ratio = ""
         if peer:
             base = by[(r["rvs"], peer)]["step_ms_p99"]
             ratio = f" {r['step_ms_p99'] / base:>11.1f}x"
-        print(f"{r['rvs']:>5} {r['predictor']:>9} {r['step_ms_median']:>10.2f} "
+        print(f"{r['rvs']:>5} {r['predictor']:>11} {r['step_ms_median']:>10.2f} "
               f"{r['step_ms_p99']:>8.2f} {r['step_ms_max']:>8.2f} {r['fresh_fraction']:>6.2f}"
               + ratio)
     for rvs, limit in TARGETS if PER == 0.5 else ():

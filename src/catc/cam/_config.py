@@ -94,6 +94,11 @@ class CamConfig:
     default_length_m: float = 4.8
     #: Vehicle width (m) when a BSM does not say.
     default_width_m: float = 1.9
+    #: With ``predictor="hgp"`` (a configuration :func:`catc.predict.hgp.table.supported`
+    #: takes): every RV's predictor a row of one :class:`~catc.predict.hgp.table.HgpTable`,
+    #: the same answers bit for bit at a fraction of the cost per tick; False: one
+    #: :class:`~catc.predict.hgp.HgpPredictor` object per RV (``bench/step.py`` times both).
+    hgp_table: bool = True
 
     def __post_init__(self) -> None:
         positive = ("horizon_s", "stale_after_s", "max_speed", "max_accel",

@@ -36,6 +36,8 @@ from catc.geo import EnuFrame
 from catc.pathhistory import ConcisePathHistory
 from catc.predict import make_predictor, predict_columns, prepare
 from catc.predict.base import Observation, Predictor
+from catc.predict.hgp import HgpConfig
+from catc.predict.hgp.table import HgpTable, supported
 
 
 class ContextAwareMap:
@@ -56,6 +58,7 @@ class ContextAwareMap:
         self._host_history = ConcisePathHistory(tolerance_m=self.config.ph_tolerance_m)
         self._host_t = -math.inf
         self.counters: dict[str, int] = dict.fromkeys(COUNTERS, 0)
+        self._hgp = hgp_table(self.config, self._predictor_kwargs)
         self._table = TrackTable(self.config, self.counters, self._new_predictor)
 
     # -- public ---------------------------------------------------------------------------
@@ -144,9 +147,14 @@ class ContextAwareMap:
         n = len(tracks)
         later = now + c.horizon_s
         predictors = [tr.predictor for tr in tracks]
-        prepare(predictors, later)  # the HGP's forecasts, stacked
+        table = self._hgp
+        if table is not None:  # every RV a row of the table
+            table.prepare(predictors, later)
+            values, source = table.columns(predictors, now, later)
+        else:
+            prepare(predictors, later)  # the HGP's forecasts, stacked
+            values, source = predict_columns(predictors, now, later)
         # rows x, pred_x, y, pred_y, speed, pred_speed, heading, pred_heading, var_x, var_y
-        values, source = predict_columns(predictors, now, later)
         (x, pred_x, y, pred_y, speed, pred_speed, heading, pred_heading, var_x,
          var_y) = values
         # The rest of the per-RV values, one row per RV; the rows become one flat array,
@@ -216,7 +224,20 @@ class ContextAwareMap:
         return ZoneArrays(zone.ahead, lateral, direction, s, d, lane, diff), used
 
     def _new_predictor(self) -> Predictor:
+        if self._hgp is not None:
+            return self._hgp.row()
         return make_predictor(self.config.predictor, **self._predictor_kwargs)
+
+
+def hgp_table(config: CamConfig, kwargs: Mapping) -> HgpTable | None:
+    """The :class:`HgpTable` of the RVs' predictors when ``config`` asks for the HGP and the
+    table computes it (``hgp_table``; only ``bank`` and ``config`` given, a configuration
+    :func:`~catc.predict.hgp.table.supported` takes); None: one object per RV."""
+    if not (config.hgp_table and config.predictor == "hgp" and set(kwargs) <= {"bank",
+                                                                               "config"}):
+        return None
+    hgp = kwargs.get("config") or HgpConfig()
+    return HgpTable(kwargs.get("bank"), hgp) if supported(hgp) else None
 
 
 def _flat_columns(rows: list[tuple], dtype: type) -> np.ndarray:

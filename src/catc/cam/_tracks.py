@@ -302,7 +302,13 @@ class TrackTable:
     def forget(self, temp_id: int) -> bool:
         """Remove the track of ``temp_id``; False when there was none."""
         self.tentative.pop(temp_id, None)
-        return self.tracks.pop(temp_id, None) is not None
+        tr = self.tracks.pop(temp_id, None)
+        if tr is None:
+            return False
+        release = getattr(tr.predictor, "release", None)  # a row of an HgpTable
+        if release is not None:
+            release()
+        return True
 
     def _new_track(self, now: float, t: float, m: BSM, x: float, y: float, frame: EnuFrame,
                    need: int = 1, verified: bool = True) -> None:
@@ -320,8 +326,7 @@ class TrackTable:
         self.counters["tracks_created"] += 1
         if need > 1:
             if len(self.tentative) >= self.config.max_tentative:
-                del self.tracks[next(iter(self.tentative))]
-                del self.tentative[next(iter(self.tentative))]
+                self.forget(next(iter(self.tentative)))
                 self.counters["tentative_evicted"] += 1
             self.tentative[m.temp_id] = None
 

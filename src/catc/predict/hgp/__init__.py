@@ -81,6 +81,8 @@ online          online models: back-test and LOO fit
 stacked         the fast path: the forecasts of many windows in one set of calls
 branches        the kinematic branches beside the GP and their scores
 predictor       :class:`HgpPredictor`, :func:`forecast_many_at` (its batch preparer)
+table           :class:`~.table.HgpTable`: many RVs' HGP predictors as rows of shared
+                arrays, the same answers (the CA-TC's, issue 30)
 direct          :class:`HgpDirectPredictor`
 ==============  ==========================================================================
 
@@ -95,7 +97,7 @@ is re-exported here.
 from catc.predict.forecast import integrate
 from catc.predict.hgp.config import HgpConfig, HgpDirectConfig
 from catc.predict.hgp.direct import HgpDirectPredictor
-from catc.predict.hgp.predictor import HgpPredictor, forecast_many, forecast_many_at, warm_up
+from catc.predict.hgp.predictor import HgpPredictor, forecast_many, forecast_many_at
 from catc.predict.hgp.reference import (
     RegularSlopeBank,
     RegularSlopePosterior,
@@ -103,6 +105,7 @@ from catc.predict.hgp.reference import (
     lml_with_slope,
     posterior_with_slope,
 )
+from catc.predict.hgp.table import warm_up
 
 __all__ = ["HgpConfig", "HgpDirectConfig", "HgpDirectPredictor", "HgpPredictor",
            "RegularSlopeBank", "RegularSlopePosterior", "forecast_many", "forecast_many_at",

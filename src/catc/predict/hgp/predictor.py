@@ -234,14 +234,3 @@ def forecast_many_at(items: Iterable[tuple[object, float]]) -> int:
 
 
 register_batch(HgpPredictor, forecast_many_at, plans=True)
-
-
-def warm_up() -> None:
-    """Load (or, on a machine's first run, compile) the compiled kernels now, with one
-    forecast of a window with losses: a daemon calls this before its first tick, which
-    would otherwise take ~0.2 s longer (several seconds on a cold compile cache)."""
-    p = HgpPredictor()
-    for k in range(12):
-        if k % 3:
-            p.update(Observation(0.1 * k, 0.0, 2.0 * k, 20.0, 0.0, 0.0, 0.0))
-    p.predict(2.0)

@@ -15,7 +15,7 @@ import numpy as np
 from catc.predict import gp
 from catc.predict.hgp.gpstack import lml_stack, series_consts, stack
 from catc.predict.hgp.reference import RegularSlopeBank, lml_with_slope
-from catc.predict.hgp.window import Selection, WindowState
+from catc.predict.hgp.window import BankCache, Selection, WindowState
 
 
 def select(s: WindowState, tau: np.ndarray, ys: np.ndarray, yh: np.ndarray,
@@ -65,30 +65,50 @@ def own_selection(s: WindowState, rel: np.ndarray,
         return Selection(pair[0], pair[1], None, series_consts(pair, 1, c))
     if cache is None:
         return None
-    i = int(np.argmax(cache[0].lml_z(rel[1])))
-    j = int(np.argmax(cache[1].lml_z(rel[2])))
+    i, j = regular_index(rel, cache)
     return Selection(s.bank.speed[i], s.bank.heading[j], (i, j), s.shared.pair(i, j))
 
 
-def _select_regular(items: list[tuple[WindowState, np.ndarray, tuple]]) -> None:
-    """:func:`own_selection` of full regular windows, ``(state, prepared window, cache)``
-    (one bank and configuration: one cache serves all), their scores
-    :meth:`RegularSlopeBank.lml_z` computed for all windows at once."""
-    shared, cache = items[0][0].shared, items[0][2]
-    rels = stack([rel for _, rel, _ in items])  # (B, 3, n + 1)
+def regular_index(rel: np.ndarray, cache: tuple[RegularSlopeBank, ...]) -> tuple[int, int]:
+    """The bank rows (speed, heading) of the best models for one full regular window
+    ``rel`` (prepared, (3, n + 1)), from the regular-grid cache."""
+    return int(np.argmax(cache[0].lml_z(rel[1]))), int(np.argmax(cache[1].lml_z(rel[2])))
+
+
+def regular_indices(rels: np.ndarray, cache: tuple[RegularSlopeBank, ...]
+                    ) -> tuple[list[int], list[int]]:
+    """:func:`regular_index` of many full regular windows (``rels`` (B, 3, n + 1)), their
+    scores :meth:`RegularSlopeBank.lml_z` computed for all at once."""
     best = []
     for series, bank in ((1, cache[0]), (2, cache[1])):
         m, k, _ = bank.Kinv.shape
         z = rels[:, series]  # (B, k)
         q = np.einsum("bmk,bk->bm", (z @ bank.Kinv.reshape(m * k, k).T).reshape(-1, m, k), z)
         best.append(np.argmax(-0.5 * q + bank.const, axis=1).tolist())
-    for (s, _, _), i, j in zip(items, best[0], best[1], strict=True):
+    return best[0], best[1]
+
+
+def bank_indices(rels: np.ndarray, shared: BankCache) -> tuple[list[int], list[int]]:
+    """The bank rows (speed, heading) of the best models for windows ``rels`` (B, 3,
+    n + 1) of one length, by :func:`~.gpstack.lml_stack`: at most :data:`SELECT_CHUNK`
+    at once."""
+    m = shared.m
+    lml = lml_stack(rels[:, 0, :-1], rels[:, 1:], shared.consts, m, shared.thetas)
+    return np.argmax(lml[:, :m], axis=1).tolist(), np.argmax(lml[:, m:], axis=1).tolist()
+
+
+def _select_regular(items: list[tuple[WindowState, np.ndarray, tuple]]) -> None:
+    """:func:`own_selection` of full regular windows, ``(state, prepared window, cache)``
+    (one bank and configuration: one cache serves all), by :func:`regular_indices`."""
+    shared, cache = items[0][0].shared, items[0][2]
+    best_s, best_h = regular_indices(stack([rel for _, rel, _ in items]), cache)
+    for (s, _, _), i, j in zip(items, best_s, best_h, strict=True):
         s.selection = Selection(s.bank.speed[i], s.bank.heading[j], (i, j), shared.pair(i, j))
 
 
 #: Windows per stacked call: bounds the work arrays (a selection's exponentials are
 #: 120 kB per window).
-_SELECT_CHUNK = 16
+SELECT_CHUNK = 16
 
 
 def select_batch(states: list[WindowState], rels: list[np.ndarray],
@@ -122,12 +142,9 @@ def select_batch(states: list[WindowState], rels: list[np.ndarray],
     for items in by_len.values():
         shared = items[0][0].shared
         m = shared.m
-        for lo in range(0, len(items), _SELECT_CHUNK):
-            chunk = items[lo:lo + _SELECT_CHUNK]
-            rels = stack([r for _, r in chunk])
-            lml = lml_stack(rels[:, 0, :-1], rels[:, 1:], shared.consts, m, shared.thetas)
-            best_s = np.argmax(lml[:, :m], axis=1).tolist()
-            best_h = np.argmax(lml[:, m:], axis=1).tolist()
+        for lo in range(0, len(items), SELECT_CHUNK):
+            chunk = items[lo:lo + SELECT_CHUNK]
+            best_s, best_h = bank_indices(stack([r for _, r in chunk]), shared)
             for (s, _), i, j in zip(chunk, best_s, best_h, strict=True):
                 s.selection = Selection(shared.thetas[i], shared.thetas[m + j], (i, j),
                                         shared.pair(i, j))

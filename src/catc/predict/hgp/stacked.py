@@ -110,7 +110,7 @@ def finish_stack(states: list[WindowState], mean: np.ndarray, var: np.ndarray, s
 
 
 #: Windows per posterior call: bounds the work arrays (23 kB per window).
-_POSTERIOR_CHUNK = 64
+POSTERIOR_CHUNK = 64
 
 
 def prepare_many(states: list[WindowState]) -> list[tuple]:
@@ -161,10 +161,17 @@ def _regular_posteriors(states: list[WindowState], prepared: list[tuple],
     of ``members``, indices into ``states`` and ``prepared``) from the cached weights of
     their models (:meth:`WindowState.regular_posteriors`), one matrix product per model in
     use instead of two dot products per window."""
-    post = states[members[rows[0]]].regular_posteriors(count)
-    idx = np.array([states[members[r]].selection.index for r in rows], dtype=np.intp)
+    regular_posteriors(
+        states[members[rows[0]]].regular_posteriors(count),
+        np.array([states[members[r]].selection.index for r in rows], dtype=np.intp),
+        stack([prepared[members[r]][0] for r in rows]), rows, mean, var)
+
+
+def regular_posteriors(post: tuple, idx: np.ndarray, rels: np.ndarray, rows: list[int],
+                       mean: np.ndarray, var: np.ndarray) -> None:
+    """:func:`_regular_posteriors` given the cached posteriors ``post``, the windows' bank
+    rows ``idx`` (R, 2) and their prepared windows ``rels`` (R, 3, n + 1)."""
     rows_a = np.array(rows, dtype=np.intp)
-    rels = stack([prepared[members[r]][0] for r in rows])  # (R, 3, n + 1)
     for series in (0, 1):
         models = idx[:, series]
         var[rows_a, series] = post[series].var[models]
@@ -215,7 +222,7 @@ def forecast_batch(states: list[WindowState], counts: list[int]) -> list[Forecas
                     regular.append(row)
                 else:
                     direct.append(row)
-        if len(direct) == len(members) <= _POSTERIOR_CHUNK:  # the usual case: one call
+        if len(direct) == len(members) <= POSTERIOR_CHUNK:  # the usual case: one call
             rels = [prepared[i][0] for i in members]
             consts = [states[i].selection.consts for i in members]
             mean, var = posterior_stack(stack(rels), grid, stack(consts))
@@ -232,8 +239,8 @@ def forecast_batch(states: list[WindowState], counts: list[int]) -> list[Forecas
                                                              sel.theta_h, c.noise_heading)
             if regular:
                 _regular_posteriors(states, prepared, members, regular, count, mean, var)
-            for lo in range(0, len(direct), _POSTERIOR_CHUNK):
-                rows = direct[lo:lo + _POSTERIOR_CHUNK]
+            for lo in range(0, len(direct), POSTERIOR_CHUNK):
+                rows = direct[lo:lo + POSTERIOR_CHUNK]
                 chunk = [members[r] for r in rows]
                 mean[rows], var[rows] = posterior_stack(
                     stack([prepared[i][0] for i in chunk]), grid,

@@ -98,6 +98,22 @@ def bank_cache(bank: KernelBank, c: HgpConfig) -> BankCache:
     return cache
 
 
+def window_rel(win: np.ndarray, accel: float, yaw_rate: float, slopes: bool) -> np.ndarray:
+    """A window's rows t, speed and heading (``win``, (3 or more, n)) relative to its last
+    sample, (3, n + 1): τ then 0 (the slope's time), speed then ``accel``, heading then
+    ``yaw_rate`` in rad/s (zeros without ``slopes``)."""
+    n = win.shape[1]
+    rel = np.empty((3, n + 1))
+    np.subtract(win[:3], win[:3, -1:], out=rel[:, :n])
+    rel[0, n] = 0.0
+    if slopes:
+        rel[1, n] = accel
+        rel[2, n] = math.radians(yaw_rate)
+    else:
+        rel[1:, n] = 0.0
+    return rel
+
+
 class WindowState:
     """What a forecast of one RV starts from, and all that the fast path reads and writes:
     the window of received samples as running arrays, the models in use, the online bank,
@@ -168,18 +184,8 @@ class WindowState:
         """The window relative to its last sample, (3, n + 1): τ then 0 (the slope's time);
         speed then the BSM's acceleration; heading (rad) then its yaw rate (rad/s); and the
         regular-grid selection cache if it is a full window of samples DT apart, else None."""
-        c = self.config
         last = self.last
-        win = self.window()
-        n = win.shape[1]
-        rel = np.empty((3, n + 1))
-        np.subtract(win[:3], win[:3, -1:], out=rel[:, :n])
-        rel[0, n] = 0.0
-        if c.slopes:
-            rel[1, n] = last.accel
-            rel[2, n] = math.radians(last.yaw_rate)
-        else:
-            rel[1:, n] = 0.0
+        rel = window_rel(self.window(), last.accel, last.yaw_rate, self.config.slopes)
         return rel, self.cache_for(rel)
 
     def cache_for(self, rel: np.ndarray) -> tuple[RegularSlopeBank, ...] | None:

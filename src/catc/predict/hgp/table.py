@@ -1,0 +1,582 @@
+"""Many RVs' HGP predictors as one table (issue 30, item 3): what
+:class:`~catc.predict.hgp.predictor.HgpPredictor` objects compute, bit for bit, with each
+RV's window, kinematic branches and forecast in rows of shared arrays, so that a CA-TC tick
+at 1,000 RVs updates them in one compiled call and plans their answers with array
+operations instead of a Python call per RV.
+
+* :class:`HgpTable` holds the rows; :class:`HgpRow` is one RV's handle, a
+  :class:`~catc.predict.base.Predictor` (``update`` queues the observation, ``predict``
+  answers at once).  ``update`` of a whole tick is :meth:`HgpTable.flush`: the
+  branches' scores at each BSM that ends a gap (Python, as
+  :meth:`~catc.predict.hgp.branches.Branches.score_gap`), then the Kalman branch's time
+  and measurement update and the window's push for every row in one compiled loop
+  (:func:`~catc.predict.hgp.rows.apply`), in rounds when a row has several observations.
+* :meth:`HgpTable.prepare` makes the forecasts due, stacked
+  (:func:`~catc.predict.hgp.stacked.forecast_batch`'s steps, on the rows' arrays);
+  :meth:`HgpTable.columns` answers every row at two times as
+  :func:`catc.predict.predict_columns` does.
+* The configurations it takes (:func:`supported`): the shipped HGP (selection with
+  slopes, no online models, no time cap on the window, GP speed and heading, CA and KF
+  branches by switching, not blending).  Others stay with the objects.
+
+The arithmetic is the objects': the same functions on the same numbers (the compiled
+loop is ``KalmanPredictor.update``'s and ``WindowState.push``'s, operation for
+operation, and tests/test_hgp_table.py holds every answer to theirs, bit for bit).
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from catc.predict.bank import KernelBank, default_bank
+from catc.predict.base import Observation, Prediction
+from catc.predict.forecast import (
+    DT,
+    Forecast,
+    bsm_prediction,
+    covers,
+    read,
+    read_many,
+    read_xy,
+)
+from catc.predict.hgp.branches import Branches
+from catc.predict.hgp.config import HgpConfig
+from catc.predict.hgp.gpstack import forecast_grid, forecast_steps, posterior_stack, stack
+from catc.predict.hgp.predictor import HgpPredictor
+from catc.predict.hgp.rows import kernel
+from catc.predict.hgp.selection import (
+    SELECT_CHUNK,
+    bank_indices,
+    regular_index,
+    regular_indices,
+)
+from catc.predict.hgp.stacked import POSTERIOR_CHUNK, finish_stack, regular_posteriors
+from catc.predict.hgp.window import bank_cache, window_rel
+from catc.predict.kalman import KalmanPredictor
+from catc.predict.kinematic import (
+    TIME_TOLERANCE,
+    ConstantAccelerationPredictor,
+    check_observation,
+    elapsed,
+)
+
+__all__ = ["HgpRow", "HgpTable", "supported", "warm_up"]
+
+#: Columns of the rows' last observation (:class:`Observation`'s fields).
+_T, _X, _Y, _SPEED, _HEADING, _ACCEL, _YAW = range(7)
+
+
+def supported(c: HgpConfig) -> bool:
+    """Whether :class:`HgpTable` computes what ``HgpPredictor(config=c)`` does (module
+    docstring)."""
+    return (c.slopes and c.select_with_slopes and not c.online and math.isinf(c.window_s)
+            and c.speed_model == "gp" and c.heading_model == "gp" and not c.branch_blend
+            and set(c.branches) <= {"ca", "kf"} and len(set(c.branches)) == len(c.branches))
+
+
+class _Scores:
+    """One row's branch scores, in the attributes
+    :meth:`~catc.predict.hgp.branches.Branches.add` keeps them in."""
+
+    __slots__ = ("choice", "config", "margins", "score", "scored", "weights")
+
+    def __init__(self, c: HgpConfig, margins: list[float]) -> None:
+        classes = len(c.branch_edges) + 1
+        self.config, self.margins = c, margins
+        self.score = [[0.0] * (len(c.branches) + 1) for _ in range(classes)]
+        self.scored = [0] * classes
+        self.choice = [0] * classes
+        self.weights: list = [None] * classes
+
+
+class _View:
+    """What :func:`~catc.predict.hgp.stacked.finish_stack` reads of a window: its
+    configuration and its counters."""
+
+    __slots__ = ("config", "stats")
+
+    def __init__(self, c: HgpConfig) -> None:
+        self.config = c
+        self.stats = {"forecasts": 0, "selections": 0, "online_models": 0, "switch_ca": 0,
+                      "switch_cs": 0}
+
+
+class HgpRow:
+    """One RV's HGP predictor, a row of an :class:`HgpTable` (a
+    :class:`~catc.predict.base.Predictor`).  ``update`` is queued until the table's next
+    :meth:`~HgpTable.flush` (every read flushes first); :meth:`release` gives the row
+    back (the handle is dead from then on)."""
+
+    __slots__ = ("alive", "slot", "table")
+    name = "hgp"
+
+    def __init__(self, table: HgpTable, slot: int) -> None:
+        self.table, self.slot, self.alive = table, slot, True
+
+    def update(self, obs: Observation) -> None:
+        self.table._pending.append((self, obs))
+
+    def predict(self, t: float) -> Prediction:
+        answer = self.table.plan(self, t)
+        return read(*answer) if answer.__class__ is tuple else answer
+
+    def reset(self) -> None:
+        raise NotImplementedError("a table row is released, not reset")
+
+    def release(self) -> None:
+        self.table.release(self)
+
+    @property
+    def stats(self) -> dict[str, int]:
+        return self.table._views[self.slot].stats
+
+
+class HgpTable:
+    """The rows (module docstring).  ``bank`` and ``config`` as :class:`HgpPredictor`'s;
+    ValueError for a configuration it does not compute (:func:`supported`)."""
+
+    def __init__(self, bank: KernelBank | None = None, config: HgpConfig | None = None,
+                 capacity: int = 64) -> None:
+        c = config or HgpConfig()
+        if not supported(c):
+            raise ValueError("HgpTable: this HgpConfig is computed by HgpPredictor only")
+        self.config = c
+        self.bank = bank if bank is not None else default_bank()
+        self.shared = bank_cache(self.bank, c)
+        self._margins = c.margins()
+        self._kf = KalmanPredictor()  # the branches as the objects make them (KINEMATIC)
+        self._ca = ConstantAccelerationPredictor()
+        self._kernel = kernel()
+        self._cap = 0
+        self._free: list[int] = []
+        self._dead: list[int] = []
+        self._pending: list[tuple[HgpRow, Observation]] = []
+        self._grow(capacity)
+
+    # -- rows -----------------------------------------------------------------------------
+    def _grow(self, capacity: int) -> None:
+        old, n = self._cap, max(capacity, 2 * self._cap)
+        tw = self.config.tw
+
+        def grown(a: np.ndarray | None, shape: tuple, fill: float) -> np.ndarray:
+            out = np.full((n, *shape), fill, dtype=np.float64 if isinstance(fill, float)
+                          else np.int64)
+            if a is not None:
+                out[:old] = a
+            return out
+
+        g = getattr
+        self.buf = grown(g(self, "buf", None), (5, 2 * tw + 2), 0.0)  # as WindowState
+        self.lo = grown(g(self, "lo", None), (), 0)
+        self.hi = grown(g(self, "hi", None), (), 0)
+        self.run = grown(g(self, "run", None), (), 0)
+        self.since = grown(g(self, "since", None), (), 0)
+        self.sel = grown(g(self, "sel", None), (2,), -1)
+        self.turn = grown(g(self, "turn", None), (), 0.0)
+        self.last = grown(g(self, "last", None), (7,), math.nan)
+        self.kf_t = grown(g(self, "kf_t", None), (), math.nan)
+        self.kf_h = grown(g(self, "kf_h", None), (), 0.0)
+        self.kf_e = grown(g(self, "kf_e", None), (3,), 0.0)
+        self.kf_n = grown(g(self, "kf_n", None), (3,), 0.0)
+        self.kf_p = grown(g(self, "kf_p", None), (6,), 0.0)
+        self.kf_a = grown(g(self, "kf_a", None), (2,), 0.0)
+        self.f_end = grown(g(self, "f_end", None), (), math.nan)
+        self.choice = grown(g(self, "choice", None), (len(self.config.branch_edges) + 1,), 0)
+        extra = n - old
+        self.forecast: list[Forecast | None] = g(self, "forecast", []) + [None] * extra
+        self._scores: list[_Scores | None] = g(self, "_scores", []) + [None] * extra
+        self._views: list[_View | None] = g(self, "_views", []) + [None] * extra
+        self._free.extend(range(n - 1, old - 1, -1))
+        self._cap = n
+
+    def row(self) -> HgpRow:
+        """A new, empty row."""
+        if not self._free:
+            self.flush()  # a row released before may come back (its updates dropped)
+            if not self._free:
+                self._grow(2 * self._cap)
+        s = self._free.pop()
+        c = self.config
+        self.lo[s] = self.hi[s] = self.run[s] = self.since[s] = 0
+        self.sel[s] = -1
+        self.turn[s] = 0.0
+        self.last[s] = math.nan
+        self.kf_t[s] = math.nan
+        self.f_end[s] = math.nan
+        self.choice[s] = 0
+        self.forecast[s] = None
+        self._scores[s] = _Scores(c, self._margins)
+        self._views[s] = _View(c)
+        return HgpRow(self, s)
+
+    def release(self, row: HgpRow) -> None:
+        """Give ``row`` back; its queued updates are dropped at the next flush."""
+        if row.alive:
+            row.alive = False
+            self._dead.append(row.slot)
+
+    # -- update ---------------------------------------------------------------------------
+    def flush(self) -> None:
+        """Apply the queued updates, in order (module docstring)."""
+        pending, self._pending = self._pending, []
+        rounds: list[list[tuple[int, Observation]]] = [[]]
+        seen: dict[int, int] = {}
+        for row, obs in pending:
+            if not row.alive:
+                continue
+            k = seen.get(row.slot, 0)
+            seen[row.slot] = k + 1
+            if k == len(rounds):
+                rounds.append([])
+            rounds[k].append((row.slot, obs))
+        for items in rounds:
+            if items:
+                self._round(items)
+        if self._dead:
+            self._free.extend(self._dead)
+            self._dead = []
+
+    def _round(self, items: list[tuple[int, Observation]]) -> None:
+        """One observation per row: ``HgpPredictor.update`` of each."""
+        c = self.config
+        edges, horizon = c.branch_edges, c.horizon_s
+        last_t = self.last[:, _T]
+        slots, rows = [], []
+        for s, obs in items:
+            check_observation(obs)  # what the branches' updates check first
+            prev_t = float(last_t[s])
+            if prev_t == prev_t:  # a previous observation
+                if obs.t <= prev_t:
+                    continue
+                gap = obs.t - prev_t
+                f = self.forecast[s]
+                if gap > DT + 1e-6 and f is not None and covers(f, gap, horizon):
+                    self._score(s, obs, bisect.bisect_left(edges, gap), read_xy(f, gap))
+            slots.append(s)
+            rows.append(obs)
+        if not slots:
+            return
+        kf = self._kf
+        self._kernel(np.array(slots, dtype=np.int64), np.array(rows, dtype=np.float64),
+                     self.buf, self.lo, self.hi, self.turn, self.run, self.since, self.sel,
+                     self.last, self.kf_t, self.kf_h, self.kf_e, self.kf_n, self.kf_p,
+                     self.kf_a, c.tw, kf.q, kf._r[0], kf._r[1], kf._r[2], c.reselect_gap_s,
+                     kf.anchor)
+        forecast = self.forecast
+        for s in slots:
+            forecast[s] = None
+        self.f_end[slots] = math.nan
+
+    def _score(self, s: int, obs: Observation, g: int, gp_xy: tuple[float, float]) -> None:
+        """``Branches.score_gap``'s scores at ``obs`` (a gap of class ``g`` ends there),
+        the GP's position ``gp_xy`` read from its forecast."""
+        gx, gy = gp_xy
+        x, y = obs.x, obs.y
+        errs = [(gx - x) ** 2 + (gy - y) ** 2]
+        for name in self.config.branches:
+            px, py = self._branch(s, name).position(obs.t)
+            errs.append((px - x) ** 2 + (py - y) ** 2)
+        scores = self._scores[s]
+        Branches.add(scores, g, errs)  # type: ignore[arg-type]  # its attributes
+        self.choice[s, g] = scores.choice[g]
+
+    def _branch(self, s: int, name: str) -> KalmanPredictor | ConstantAccelerationPredictor:
+        """The kinematic branch ``name`` of row ``s``: an object of its class, holding the
+        row's state (the same object each time: read it before the next call)."""
+        if name == "ca":
+            ca = self._ca
+            ca._last = Observation(*self.last[s].tolist())
+            return ca
+        kf = self._kf
+        t = float(self.kf_t[s])
+        kf._t = None if t != t else t
+        kf._east = tuple(self.kf_e[s].tolist())
+        kf._north = tuple(self.kf_n[s].tolist())
+        kf._p = tuple(self.kf_p[s].tolist())
+        kf._heading = float(self.kf_h[s])
+        kf._anchor = tuple(self.kf_a[s].tolist())
+        return kf
+
+    # -- forecasts ------------------------------------------------------------------------
+    def prepare(self, rows: Sequence[HgpRow], t: float) -> int:
+        """:func:`~catc.predict.hgp.predictor.forecast_many` for ``rows``: the forecasts
+        that answering at ``t`` needs, made stacked; how many."""
+        self.flush()
+        c = self.config
+        slots = np.fromiter((r.slot for r in rows), dtype=np.int64, count=len(rows))
+        tau = t - self.last[slots, _T]
+        with np.errstate(invalid="ignore"):
+            due = (tau > 0.0) & ~(self.f_end[slots] >= np.minimum(tau, c.horizon_s) - 1e-9)
+        due &= self.hi[slots] - self.lo[slots] >= c.min_points
+        idx = np.flatnonzero(due)
+        if not len(idx):
+            return 0
+        steps: dict[float, int] = {}
+        counts = []
+        for h in np.maximum(tau[idx], 3.0).tolist():
+            n = steps.get(h)
+            if n is None:
+                n = steps[h] = forecast_steps(h, c)
+            counts.append(n)
+        self._forecasts(slots[idx].tolist(), counts)
+        return len(idx)
+
+    def _prepared(self, slots: list[int]) -> list[tuple[np.ndarray, tuple | None]]:
+        """``stacked.prepare_many`` of the rows ``slots``: each window relative to its
+        last sample, and the regular-grid cache where it is a full regular window."""
+        c = self.config
+        n = c.tw
+        lo, hi, last = self.lo, self.hi, self.last
+        out: list = [None] * len(slots)
+        full = [i for i, s in enumerate(slots) if hi[s] - lo[s] == n]
+        if len(full) > 1:
+            fs = np.array([slots[i] for i in full], dtype=np.int64)
+            cols = lo[fs][:, None] + np.arange(n)
+            win = self.buf[fs[:, None, None], np.arange(3)[None, :, None], cols[:, None, :]]
+            rel = np.empty((len(full), 3, n + 1))
+            np.subtract(win, win[:, :, -1:], out=rel[:, :, :n])
+            rel[:, 0, n] = 0.0
+            rel[:, 1, n] = last[fs, _ACCEL]
+            rel[:, 2, n] = [math.radians(v) for v in last[fs, _YAW].tolist()]
+            steps = np.diff(rel[:, 0, :n], axis=1)
+            steps -= DT
+            regular = (np.abs(steps).max(axis=1) <= 1e-6).tolist()
+            runs = self.run[fs].tolist()
+            bank = None
+            for i, r, ok, run in zip(full, rel, regular, runs, strict=True):
+                if ok and run >= n:
+                    if bank is None:
+                        bank = self._regular_bank()
+                    out[i] = (r, bank)
+                else:
+                    out[i] = (r, None)
+        for i, s in enumerate(slots):
+            if out[i] is None:  # WindowState.prepare
+                a, b = lo[s], hi[s]
+                rel = window_rel(self.buf[s, :, a:b], float(last[s, _ACCEL]),
+                                 float(last[s, _YAW]), True)
+                regular = (self.run[s] >= b - a == n
+                           and not np.max(np.abs(np.diff(rel[0, :n]) - DT)) > 1e-6)
+                out[i] = (rel, self._regular_bank() if regular else None)
+        return out
+
+    def _regular_bank(self) -> tuple:
+        c = self.config
+        regular = self.shared.regular
+        cache = regular.get(c.tw)
+        if cache is None:  # WindowState.regular_bank's
+            from catc.predict.hgp.reference import RegularSlopeBank
+
+            cache = regular[c.tw] = (
+                RegularSlopeBank(self.bank.speed, c.tw, c.noise_speed, c.noise_accel),
+                RegularSlopeBank(self.bank.heading, c.tw, c.noise_heading, c.noise_yaw))
+        return cache
+
+    def _select(self, slots: list[int], prepared: list[tuple]) -> None:
+        """``selection.select_batch`` of the rows ``slots`` (their prepared windows)."""
+        regular, todo = [], []
+        for i, s in enumerate(slots):
+            self._views[s].stats["selections"] += 1
+            self.since[s] = 0
+            (regular if prepared[i][1] is not None else todo).append(i)
+        if len(regular) == 1:
+            i = regular[0]
+            self.sel[slots[i]] = regular_index(prepared[i][0], prepared[i][1])
+        elif regular:
+            best = regular_indices(stack([prepared[i][0] for i in regular]),
+                                   prepared[regular[0]][1])
+            self.sel[[slots[i] for i in regular]] = np.array(best).T
+        by_len: dict[int, list[int]] = {}
+        for i in todo:
+            by_len.setdefault(prepared[i][0].shape[1], []).append(i)
+        for items in by_len.values():
+            for lo in range(0, len(items), SELECT_CHUNK):
+                chunk = items[lo:lo + SELECT_CHUNK]
+                best = bank_indices(stack([prepared[i][0] for i in chunk]), self.shared)
+                self.sel[[slots[i] for i in chunk]] = np.array(best).T
+
+    def _forecasts(self, slots: list[int], counts: list[int]) -> None:
+        """``stacked.forecast_batch`` of the rows ``slots``, ``counts[i]`` points each; the
+        forecasts kept in the rows."""
+        c = self.config
+        prepared = self._prepared(slots)
+        views = self._views
+        every = c.reselect_every
+        stale = []
+        for i, s in enumerate(slots):
+            views[s].stats["forecasts"] += 1
+            if self.sel[s, 0] < 0 or self.since[s] >= every:
+                stale.append(i)
+        if stale:
+            self._select([slots[i] for i in stale], [prepared[i] for i in stale])
+        groups: dict[tuple[int, int], list[int]] = {}
+        for i, ((rel, _), count) in enumerate(zip(prepared, counts, strict=True)):
+            groups.setdefault((rel.shape[1], count), []).append(i)
+        pair = self.shared.pair
+        for (_, count), members in groups.items():
+            grid = forecast_grid(count)[0]
+            regular = [row for row, i in enumerate(members) if prepared[i][1] is not None]
+            direct = [row for row, i in enumerate(members) if prepared[i][1] is None]
+            sel = self.sel[[slots[i] for i in members]].tolist()
+            if len(direct) == len(members) <= POSTERIOR_CHUNK:
+                mean, var = posterior_stack(stack([prepared[i][0] for i in members]), grid,
+                                            stack([pair(*ij) for ij in sel]))
+            else:
+                mean = np.empty((len(members), 2, count))
+                var = np.empty((len(members), 2, count))
+                if regular:  # cached weights: one matrix product per bank model in use
+                    regular_posteriors(
+                        self._regular_posteriors(count),
+                        np.array([sel[r] for r in regular], dtype=np.intp),
+                        stack([prepared[members[r]][0] for r in regular]), regular, mean,
+                        var)
+                for lo in range(0, len(direct), POSTERIOR_CHUNK):
+                    rows = direct[lo:lo + POSTERIOR_CHUNK]
+                    mean[rows], var[rows] = posterior_stack(
+                        stack([prepared[members[r]][0] for r in rows]), grid,
+                        stack([pair(*sel[r]) for r in rows]))
+            ms = [slots[i] for i in members]
+            last = self.last[ms].tolist()
+            start = np.array([(o[_SPEED], math.radians(o[_HEADING]), o[_X], o[_Y])
+                              for o in last])
+            made = finish_stack([views[s] for s in ms], mean, var, start, grid)
+            for s, f in zip(ms, made, strict=True):
+                self.forecast[s] = f
+            self.f_end[ms] = made[0].end
+
+    def _regular_posteriors(self, count: int) -> tuple:
+        c = self.config
+        post = self.shared.posterior.get((c.tw, count))
+        if post is None:  # WindowState.regular_posteriors'
+            from catc.predict.hgp.reference import RegularSlopePosterior
+
+            grid = forecast_grid(count)[0]
+            post = self.shared.posterior[c.tw, count] = (
+                RegularSlopePosterior(self.bank.speed, c.tw, c.noise_speed, c.noise_accel,
+                                      grid),
+                RegularSlopePosterior(self.bank.heading, c.tw, c.noise_heading, c.noise_yaw,
+                                      grid))
+        return post
+
+    # -- answers --------------------------------------------------------------------------
+    def plan(self, row: HgpRow, t: float):
+        """``HgpPredictor.plan(t)`` of ``row``: a Prediction, or ``(forecast, tau)``."""
+        self.flush()
+        s = row.slot
+        if self.last[s, _T] != self.last[s, _T]:
+            raise LookupError("no observation yet")
+        c = self.config
+        last = Observation(*self.last[s].tolist())
+        tau = elapsed(last.t, t)
+        if tau == 0.0:
+            return bsm_prediction(last)
+        if self.hi[s] - self.lo[s] < c.min_points:
+            return HgpPredictor._ca(None, last, tau)  # type: ignore[arg-type]  # no self
+        f = self.forecast[s]
+        if f is None or not covers(f, tau, c.horizon_s):
+            self._forecasts([s], [forecast_steps(max(tau, 3.0), c)])
+            f = self.forecast[s]
+        b = int(self.choice[s, bisect.bisect_left(c.branch_edges, tau)])
+        if b:  # the GP's forecast is still made: it is scored at the next BSM
+            return self._branch(s, c.branches[b - 1]).predict(t)
+        return f, tau
+
+    def columns(self, rows: Sequence[HgpRow], t0: float, t1: float
+                ) -> tuple[np.ndarray, list[str]]:
+        """:func:`catc.predict.predict_columns` of ``rows`` at ``t0 <= t1``, after
+        :meth:`prepare` for ``t1``: the (10, n) array and the sources at ``t0``."""
+        self.flush()
+        c = self.config
+        n = len(rows)
+        slots = np.fromiter((r.slot for r in rows), dtype=np.int64, count=n)
+        out = np.empty((10, n))
+        sources = [""] * n
+        if not n:
+            return out, sources
+        last = self.last[slots]
+        if np.isnan(last[:, _T]).any():
+            raise LookupError("no observation yet")
+        tau0, tau1 = _elapsed_many(last[:, _T], t0), _elapsed_many(last[:, _T], t1)
+        edges = np.asarray(c.branch_edges, dtype=np.float64)
+        short = self.hi[slots] - self.lo[slots] < c.min_points
+        with np.errstate(invalid="ignore"):
+            uncovered = ~(self.f_end[slots] >= np.minimum(tau1, c.horizon_s) - 1e-9)
+        scalar = short | uncovered if t0 <= t1 else np.ones(n, dtype=bool)
+        reads: tuple[list, list] = ([], [])  # per time: (column, (forecast, tau))
+        whole: tuple[list, list] = ([], [])  # per time: (column, Prediction)
+        for j, (tau, t) in enumerate(((tau0, t0), (tau1, t1))):
+            fresh = tau == 0.0
+            b = self.choice[slots, np.searchsorted(edges, tau, side="left")]
+            gp = ~scalar & ~fresh & (b == 0)
+            kin = ~scalar & ~fresh & (b != 0)
+            bsm = ~scalar & fresh
+            cols = np.flatnonzero(bsm)
+            out[j:8:2, cols] = last[cols][:, [_X, _Y, _SPEED, _HEADING]].T
+            if j == 0:
+                out[8:, cols] = 0.0
+                for i in cols.tolist():
+                    sources[i] = "bsm"
+            forecast = self.forecast
+            reads[j].extend((i, (forecast[s], tu)) for i, s, tu in zip(
+                np.flatnonzero(gp).tolist(), slots[gp].tolist(), tau[gp].tolist(),
+                strict=True))
+            for i in np.flatnonzero(kin).tolist():
+                name = c.branches[int(b[i]) - 1]
+                whole[j].append((i, self._branch(int(slots[i]), name).predict(t)))
+        for i in np.flatnonzero(scalar).tolist():
+            row = rows[i]
+            for j, t in enumerate((t0, t1)):
+                a = self.plan(row, t)
+                if a.__class__ is tuple:
+                    reads[j].append((i, a))
+                else:
+                    whole[j].append((i, a))
+        for j in (0, 1):
+            for i, p in whole[j]:
+                out[j:8:2, i] = (p.x, p.y, p.speed, p.heading)
+                if j == 0:
+                    out[8:, i] = (p.var_x, p.var_y)
+                    sources[i] = p.source
+            if reads[j]:
+                idx = [i for i, _ in reads[j]]
+                values, src = read_many([a for _, a in reads[j]])
+                out[j:8:2, idx] = values[:4]
+                if j == 0:
+                    out[8:, idx] = values[4:]
+                    for i, s in zip(idx, src, strict=True):
+                        sources[i] = s
+        return out, sources
+
+
+def _elapsed_many(last_t: np.ndarray, t: float) -> np.ndarray:
+    """:func:`~catc.predict.kinematic.elapsed` of each of ``last_t`` (its ValueError for
+    the first one too late)."""
+    dt = t - last_t
+    early = dt < 0.0
+    if early.any():
+        if (dt < -TIME_TOLERANCE).any():
+            elapsed(float(last_t[np.argmax(dt < -TIME_TOLERANCE)]), t)  # raises
+        dt = np.where(early, 0.0, dt)
+    return dt
+
+
+def warm_up() -> None:
+    """Load (or, on a machine's first run, compile) the compiled kernels now, with one
+    forecast of a window with losses by an :class:`HgpPredictor` and by an
+    :class:`HgpTable`: a daemon calls this before its first tick, which would otherwise
+    take ~0.3 s longer (several seconds on a cold compile cache)."""
+    p = HgpPredictor()
+    table = HgpTable(capacity=1)
+    row = table.row()
+    for k in range(12):
+        if k % 3:
+            obs = Observation(0.1 * k, 0.0, 2.0 * k, 20.0, 0.0, 0.0, 0.0)
+            p.update(obs)
+            row.update(obs)
+    p.predict(2.0)
+    table.prepare([row], 2.0)
+    table.columns([row], 1.2, 2.0)

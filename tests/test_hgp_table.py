@@ -102,7 +102,7 @@ def test_rows_answer_what_the_objects_answer_bit_for_bit(per: float) -> None:
             for i in live[::3]:
                 t = now + 0.37 * (i % 4)
                 _same(rows[i].predict(t), objs[i].predict(t))
-    assert [table._views[r.slot].stats for r in rows] == [o.stats for o in objs]
+    assert [r.stats for r in rows] == [o.stats for o in objs]
 
 
 def test_a_released_row_comes_back_empty_and_its_queued_updates_are_dropped() -> None:

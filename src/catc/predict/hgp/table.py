@@ -95,14 +95,38 @@ class _Scores:
 
 class _View:
     """What :func:`~catc.predict.hgp.stacked.finish_stack` reads of a window: its
-    configuration and its counters."""
+    configuration and its switch counters (the others are the table's arrays)."""
 
     __slots__ = ("config", "stats")
 
     def __init__(self, c: HgpConfig) -> None:
         self.config = c
-        self.stats = {"forecasts": 0, "selections": 0, "online_models": 0, "switch_ca": 0,
-                      "switch_cs": 0}
+        self.stats = {"switch_ca": 0, "switch_cs": 0}
+
+
+class _Prepared:
+    """Windows prepared for a forecast (``stacked.prepare_many``): the full ones as rows
+    of one array (``full[at[i]]``), the others one by one (``rels[i]``), and which are
+    full and regular."""
+
+    __slots__ = ("at", "full", "regular", "rels")
+
+    def __init__(self, n: int) -> None:
+        self.full: np.ndarray | None = None
+        self.at = np.full(n, -1, dtype=np.int64)
+        self.rels: list[np.ndarray | None] = [None] * n
+        self.regular = np.zeros(n, dtype=bool)
+
+    def rel(self, i: int) -> np.ndarray:
+        k = self.at[i]
+        return self.full[k] if k >= 0 else self.rels[i]
+
+    def stack(self, items: np.ndarray) -> np.ndarray:
+        """The windows ``items`` (one length) stacked, (len(items), 3, n + 1)."""
+        at = self.at[items]
+        if (at >= 0).all():
+            return self.full[at]
+        return stack([self.rel(int(i)) for i in items])
 
 
 class HgpRow:
@@ -132,7 +156,12 @@ class HgpRow:
 
     @property
     def stats(self) -> dict[str, int]:
-        return self.table._views[self.slot].stats
+        """``HgpPredictor.stats``: forecasts, selections and hybrid switches so far."""
+        t, s = self.table, self.slot
+        switches = t._views[s].stats
+        return {"forecasts": int(t.n_forecasts[s]), "selections": int(t.n_selections[s]),
+                "online_models": 0, "switch_ca": switches["switch_ca"],
+                "switch_cs": switches["switch_cs"]}
 
 
 class HgpTable:
@@ -186,6 +215,8 @@ class HgpTable:
         self.kf_a = grown(g(self, "kf_a", None), (2,), 0.0)
         self.f_end = grown(g(self, "f_end", None), (), math.nan)
         self.choice = grown(g(self, "choice", None), (len(self.config.branch_edges) + 1,), 0)
+        self.n_forecasts = grown(g(self, "n_forecasts", None), (), 0)
+        self.n_selections = grown(g(self, "n_selections", None), (), 0)
         extra = n - old
         self.forecast: list[Forecast | None] = g(self, "forecast", []) + [None] * extra
         self._scores: list[_Scores | None] = g(self, "_scores", []) + [None] * extra
@@ -207,7 +238,7 @@ class HgpTable:
         self.last[s] = math.nan
         self.kf_t[s] = math.nan
         self.f_end[s] = math.nan
-        self.choice[s] = 0
+        self.choice[s] = self.n_forecasts[s] = self.n_selections[s] = 0
         self.forecast[s] = None
         self._scores[s] = _Scores(c, self._margins)
         self._views[s] = _View(c)
@@ -322,21 +353,22 @@ class HgpTable:
             if n is None:
                 n = steps[h] = forecast_steps(h, c)
             counts.append(n)
-        self._forecasts(slots[idx].tolist(), counts)
+        self._forecasts(slots[idx], np.array(counts, dtype=np.int64))
         return len(idx)
 
-    def _prepared(self, slots: list[int]) -> list[tuple[np.ndarray, tuple | None]]:
+    def _prepared(self, slots: np.ndarray) -> _Prepared:
         """``stacked.prepare_many`` of the rows ``slots``: each window relative to its
-        last sample, and the regular-grid cache where it is a full regular window."""
-        c = self.config
-        n = c.tw
-        lo, hi, last = self.lo, self.hi, self.last
-        out: list = [None] * len(slots)
-        full = [i for i, s in enumerate(slots) if hi[s] - lo[s] == n]
-        if len(full) > 1:
-            fs = np.array([slots[i] for i in full], dtype=np.int64)
-            cols = lo[fs][:, None] + np.arange(n)
-            win = self.buf[fs[:, None, None], np.arange(3)[None, :, None], cols[:, None, :]]
+        last sample, and whether it is a full regular window (the regular-grid cache's)."""
+        n = self.config.tw
+        lo, hi, last = self.lo[slots], self.hi[slots], self.last
+        out = _Prepared(len(slots))
+        full = np.flatnonzero(hi - lo == n)
+        if len(full):  # all full windows at once (one gather, one subtraction)
+            fs = slots[full]
+            width = self.buf.shape[2]
+            idx = ((fs * (5 * width))[:, None, None] + (np.arange(3) * width)[None, :, None]
+                   + (lo[full][:, None] + np.arange(n))[:, None, :])
+            win = self.buf.reshape(-1).take(idx)
             rel = np.empty((len(full), 3, n + 1))
             np.subtract(win, win[:, :, -1:], out=rel[:, :, :n])
             rel[:, 0, n] = 0.0
@@ -344,24 +376,12 @@ class HgpTable:
             rel[:, 2, n] = [math.radians(v) for v in last[fs, _YAW].tolist()]
             steps = np.diff(rel[:, 0, :n], axis=1)
             steps -= DT
-            regular = (np.abs(steps).max(axis=1) <= 1e-6).tolist()
-            runs = self.run[fs].tolist()
-            bank = None
-            for i, r, ok, run in zip(full, rel, regular, runs, strict=True):
-                if ok and run >= n:
-                    if bank is None:
-                        bank = self._regular_bank()
-                    out[i] = (r, bank)
-                else:
-                    out[i] = (r, None)
-        for i, s in enumerate(slots):
-            if out[i] is None:  # WindowState.prepare
-                a, b = lo[s], hi[s]
-                rel = window_rel(self.buf[s, :, a:b], float(last[s, _ACCEL]),
-                                 float(last[s, _YAW]), True)
-                regular = (self.run[s] >= b - a == n
-                           and not np.max(np.abs(np.diff(rel[0, :n]) - DT)) > 1e-6)
-                out[i] = (rel, self._regular_bank() if regular else None)
+            out.regular[full] = (np.abs(steps).max(axis=1) <= 1e-6) & (self.run[fs] >= n)
+            out.full, out.at[full] = rel, np.arange(len(full))
+        for i in np.flatnonzero(hi - lo != n).tolist():  # WindowState.prepare
+            s = int(slots[i])
+            out.rels[i] = window_rel(self.buf[s, :, lo[i]:hi[i]], float(last[s, _ACCEL]),
+                                     float(last[s, _YAW]), True)
         return out
 
     def _regular_bank(self) -> tuple:
@@ -376,76 +396,74 @@ class HgpTable:
                 RegularSlopeBank(self.bank.heading, c.tw, c.noise_heading, c.noise_yaw))
         return cache
 
-    def _select(self, slots: list[int], prepared: list[tuple]) -> None:
-        """``selection.select_batch`` of the rows ``slots`` (their prepared windows)."""
-        regular, todo = [], []
-        for i, s in enumerate(slots):
-            self._views[s].stats["selections"] += 1
-            self.since[s] = 0
-            (regular if prepared[i][1] is not None else todo).append(i)
+    def _select(self, slots: np.ndarray, prep: _Prepared, items: np.ndarray) -> None:
+        """``selection.select_batch`` of the rows ``slots[items]``."""
+        rows = slots[items]
+        self.n_selections[rows] += 1
+        self.since[rows] = 0
+        regular = items[prep.regular[items]]
         if len(regular) == 1:
-            i = regular[0]
-            self.sel[slots[i]] = regular_index(prepared[i][0], prepared[i][1])
-        elif regular:
-            best = regular_indices(stack([prepared[i][0] for i in regular]),
-                                   prepared[regular[0]][1])
-            self.sel[[slots[i] for i in regular]] = np.array(best).T
+            i = int(regular[0])
+            self.sel[slots[i]] = regular_index(prep.rel(i), self._regular_bank())
+        elif len(regular):
+            self.sel[slots[regular]] = np.array(
+                regular_indices(prep.stack(regular), self._regular_bank())).T
         by_len: dict[int, list[int]] = {}
-        for i in todo:
-            by_len.setdefault(prepared[i][0].shape[1], []).append(i)
-        for items in by_len.values():
-            for lo in range(0, len(items), SELECT_CHUNK):
-                chunk = items[lo:lo + SELECT_CHUNK]
-                best = bank_indices(stack([prepared[i][0] for i in chunk]), self.shared)
-                self.sel[[slots[i] for i in chunk]] = np.array(best).T
+        for i in items[~prep.regular[items]].tolist():
+            by_len.setdefault(prep.rel(i).shape[1], []).append(i)
+        for todo in by_len.values():
+            for lo in range(0, len(todo), SELECT_CHUNK):
+                chunk = np.array(todo[lo:lo + SELECT_CHUNK])
+                self.sel[slots[chunk]] = np.array(
+                    bank_indices(prep.stack(chunk), self.shared)).T
 
-    def _forecasts(self, slots: list[int], counts: list[int]) -> None:
+    def _forecasts(self, slots: np.ndarray, counts: np.ndarray) -> None:
         """``stacked.forecast_batch`` of the rows ``slots``, ``counts[i]`` points each; the
         forecasts kept in the rows."""
         c = self.config
-        prepared = self._prepared(slots)
+        prep = self._prepared(slots)
+        self.n_forecasts[slots] += 1
+        stale = np.flatnonzero((self.sel[slots, 0] < 0) | (self.since[slots] >= c.reselect_every))
+        if len(stale):
+            self._select(slots, prep, stale)
+        # groups of one window length and forecast length, in the order of their first row
+        keys = (self.hi[slots] - self.lo[slots]) * 100_000 + counts
+        _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+        consts, m = self.shared.consts, self.shared.m
         views = self._views
-        every = c.reselect_every
-        stale = []
-        for i, s in enumerate(slots):
-            views[s].stats["forecasts"] += 1
-            if self.sel[s, 0] < 0 or self.since[s] >= every:
-                stale.append(i)
-        if stale:
-            self._select([slots[i] for i in stale], [prepared[i] for i in stale])
-        groups: dict[tuple[int, int], list[int]] = {}
-        for i, ((rel, _), count) in enumerate(zip(prepared, counts, strict=True)):
-            groups.setdefault((rel.shape[1], count), []).append(i)
-        pair = self.shared.pair
-        for (_, count), members in groups.items():
+        for g in np.argsort(first, kind="stable").tolist():
+            members = np.flatnonzero(inverse == g)
+            count = int(counts[members[0]])
             grid = forecast_grid(count)[0]
-            regular = [row for row, i in enumerate(members) if prepared[i][1] is not None]
-            direct = [row for row, i in enumerate(members) if prepared[i][1] is None]
-            sel = self.sel[[slots[i] for i in members]].tolist()
+            ms = slots[members]
+            sel = self.sel[ms]
+            pairs = np.stack([consts[sel[:, 0]], consts[m + sel[:, 1]]], axis=1)
+            regular = prep.regular[members]
+            direct = np.flatnonzero(~regular)
             if len(direct) == len(members) <= POSTERIOR_CHUNK:
-                mean, var = posterior_stack(stack([prepared[i][0] for i in members]), grid,
-                                            stack([pair(*ij) for ij in sel]))
+                mean, var = posterior_stack(prep.stack(members), grid, pairs)
             else:
                 mean = np.empty((len(members), 2, count))
                 var = np.empty((len(members), 2, count))
-                if regular:  # cached weights: one matrix product per bank model in use
-                    regular_posteriors(
-                        self._regular_posteriors(count),
-                        np.array([sel[r] for r in regular], dtype=np.intp),
-                        stack([prepared[members[r]][0] for r in regular]), regular, mean,
-                        var)
+                reg = np.flatnonzero(regular)
+                if len(reg):  # cached weights: one matrix product per bank model in use
+                    regular_posteriors(self._regular_posteriors(count), sel[reg].astype(np.intp),
+                                       prep.stack(members[reg]), reg.tolist(), mean, var)
                 for lo in range(0, len(direct), POSTERIOR_CHUNK):
                     rows = direct[lo:lo + POSTERIOR_CHUNK]
-                    mean[rows], var[rows] = posterior_stack(
-                        stack([prepared[members[r]][0] for r in rows]), grid,
-                        stack([pair(*sel[r]) for r in rows]))
-            ms = [slots[i] for i in members]
-            last = self.last[ms].tolist()
-            start = np.array([(o[_SPEED], math.radians(o[_HEADING]), o[_X], o[_Y])
-                              for o in last])
-            made = finish_stack([views[s] for s in ms], mean, var, start, grid)
-            for s, f in zip(ms, made, strict=True):
-                self.forecast[s] = f
+                    mean[rows], var[rows] = posterior_stack(prep.stack(members[rows]), grid,
+                                                            pairs[rows])
+            last = self.last[ms]
+            start = np.empty((len(ms), 4))
+            start[:, 0] = last[:, _SPEED]
+            start[:, 1] = [math.radians(h) for h in last[:, _HEADING].tolist()]
+            start[:, 2] = last[:, _X]
+            start[:, 3] = last[:, _Y]
+            ms_list = ms.tolist()
+            made = finish_stack([views[s] for s in ms_list], mean, var, start, grid)
+            forecast = self.forecast
+            for s, f in zip(ms_list, made, strict=True):
+                forecast[s] = f
             self.f_end[ms] = made[0].end
 
     def _regular_posteriors(self, count: int) -> tuple:
@@ -478,7 +496,7 @@ class HgpTable:
             return HgpPredictor._ca(None, last, tau)  # type: ignore[arg-type]  # no self
         f = self.forecast[s]
         if f is None or not covers(f, tau, c.horizon_s):
-            self._forecasts([s], [forecast_steps(max(tau, 3.0), c)])
+            self._forecasts(np.array([s]), np.array([forecast_steps(max(tau, 3.0), c)]))
             f = self.forecast[s]
         b = int(self.choice[s, bisect.bisect_left(c.branch_edges, tau)])
         if b:  # the GP's forecast is still made: it is scored at the next BSM

@@ -262,6 +262,7 @@ OBU_RUN = ["obu.cli", "run", "--duration", "0.3", "--no-progress",
     # the bound on the urgent ECDSA: a rate above 0, or off
     ([*OBU_RUN, "--verify-urgent", "0"], 2, "--verify-urgent: a number above 0, got 0"),
     ([*OBU_RUN, "--verify-urgent", "many"], 2, "--verify-urgent"),
+    ([*OBU_RUN, "--shed-after", "-1"], 2, "--shed-after: a number above 0, got -1"),
 ])
 def test_every_bad_input_is_one_line(argv, code, needle, bad_files):
     """Issue 27: each of these ended in a traceback, or in a line that named neither the

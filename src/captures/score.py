@@ -200,12 +200,13 @@ def _frames(cap: Capture, names: dict[str, str], sent: dict) -> dict:
     as an RV message (a copy with its count or secMark flipped, the host's own frame
     heard on the RV channel); ``phantom`` an accepted frame of an id the RVE never sent;
     ``garbage`` (decode errors, by reason), ``rejected``, ``quarantined``, ``unticked``,
-    ``withheld`` (urgent frames the OBU held back unverified: ``obu run --verify-urgent``).
+    ``withheld`` (urgent frames the OBU held back unverified: ``obu run --verify-urgent``),
+    ``shed`` (frames an OBU behind real time dropped unread: ``--shed-after``).
     The RV channel's frames are the sum of these; ``host_errors`` counts the host
     channel's decode errors, ``host_refused`` its frames the OBU did not believe, by
     reason (:class:`obu.host.HostGate`)."""
     counts = dict.fromkeys(("received", "duplicate", "unmatched", "phantom", "rejected",
-                            "quarantined", "unticked", "withheld"), 0)
+                            "quarantined", "unticked", "withheld", "shed"), 0)
     garbage: Counter = Counter()
     security: Counter = Counter()
     host_errors = 0
@@ -247,7 +248,7 @@ def _frames(cap: Capture, names: dict[str, str], sent: dict) -> dict:
 
 
 #: The statuses of an rx record that are not a decode error.
-_STATUSES = ("ok", "rejected", "quarantined", "unticked", "withheld")
+_STATUSES = ("ok", "rejected", "quarantined", "unticked", "withheld", "shed")
 
 
 def score(directory: Path) -> dict:
@@ -494,7 +495,8 @@ def table(r: dict) -> str:
         f"received {r['received']}, decode errors {sum(r['decode_errors'].values())}",
         "other frames at the RV port: " + ", ".join(
             f"{k} {r['frames'][k]}" for k in ("duplicate", "unmatched", "phantom", "rejected",
-                                              "quarantined", "unticked", "withheld")),
+                                              "quarantined", "unticked", "withheld",
+                                              "shed")),
         f"PTE95 {r['pte95_m']} m (mean {r['pte_mean_m']} m){part}",
         f"FCW accuracy {r['fcw_accuracy']}  (TP {f['tp']}, TN {f['tn']}, FP {f['fp']}, "
         f"FN {f['fn']}; by vehicle){part}",

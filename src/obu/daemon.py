@@ -55,6 +55,8 @@ class Obu:
         self.frames = Frames(args, self.counters, self.log, self.clock, self.cap,
                              self.cam.drop)
         self.rule = TickRule(args.collect_ms)
+        shed = getattr(args, "shed_after", None)
+        self.shed_after = None if shed in (None, "off") else float(shed)
         self.host_arrival = 0.0  # the ticking host frame's arrival (unix s)
         self.last_frame = self.last_rv = time.monotonic()
         self.web: Any = None  # the live view's hub (obu.web.Hub) when --web is on
@@ -62,9 +64,24 @@ class Obu:
 
     def frame(self, channel: str, data: bytes, rx_unix: float) -> BSM | None:
         """One received frame (:meth:`obu.frames.Frames.take`): the host's BSM when it
-        is a host frame that decodes (it triggers a tick), else None."""
+        is a host frame that decodes (it triggers a tick), else None.
+
+        An OBU behind real time drops what waited longer than ``--shed-after`` before it
+        got to it (``shed_rv``, ``shed_host``; status ``shed``): undecoded, unverified,
+        so that it catches up instead of staying behind; a host frame dropped is a tick
+        not stepped, counted as a missed deadline (``deadline_misses_shed``)."""
         self.counters["frames"] += 1
         self.counters[f"frames_{channel}"] += 1
+        shed = self.shed_after
+        if shed is not None and time.time() - rx_unix > shed:
+            self.counters[f"shed_{channel}"] += 1
+            if channel == "host":
+                self.counters["deadline_misses_shed"] += 1
+                self.counters["deadline_misses"] += 1
+            self.log("shed", f"behind real time: frames that waited over {shed:g} s dropped")
+            if self.cap is not None:
+                self.cap.frame(rx_unix, channel, data, "shed")
+            return None
         self.last_frame = time.monotonic()
         if channel == "rv":  # any datagram, decodable or not: the channel is not quiet
             self.last_rv = self.last_frame

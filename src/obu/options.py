@@ -23,7 +23,7 @@ DEFAULTS = {
     "warnings": None, "collect_ms": 5.0, "can_interface": "virtual", "can_channel": None,
     "can_fd": False, "progress": True, "max_tracks": 1000, "verify": "off", "trust": None,
     "verify_policy": "on-demand", "verify_queue": 2000, "verify_workers": 1,
-    "verify_urgent": 2000.0, "mbd": False,
+    "verify_urgent": 2000.0, "shed_after": "off", "mbd": False,
     "web": None, "host_id": None, "signatures": "strict",
     "capture_max_mb": None, "host_source": "channel", "vehicle": "toyota-rav4-2017",
     "dbc": None, "vehicle_can_interface": "virtual", "vehicle_can_channel": None,
@@ -51,7 +51,8 @@ class GnssSpec:
 
 
 def urgent_limit(text: str) -> float | str:
-    """``--verify-urgent``: ``off`` or a number of ECDSA/s above 0; the argparse ``type``."""
+    """``--verify-urgent`` and ``--shed-after``: ``off`` or a number above 0 (ECDSA/s,
+    seconds); the argparse ``type``."""
     return "off" if text == "off" else positive(text)
 
 
@@ -149,6 +150,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--verify-workers", type=int, metavar="N",
                    help="verify on demand: processes (nice +10) that verify the queued "
                         "frames beside the OBU's own idle time; 0: none (default 1)")
+    p.add_argument("--shed-after", type=urgent_limit, metavar="S|off",
+                   help="an OBU behind real time drops the frames that waited longer than S "
+                        "s for it, undecoded (shed_rv, shed_host; a host frame dropped is a "
+                        "missed tick), to catch up; off: never (default)")
     p.add_argument("--verify-urgent", type=urgent_limit, metavar="N|off",
                    help="verify on demand: the ECDSA/s run at once for what frames claim of "
                         "themselves (a new RV, hard braking), all senders together, and "

@@ -285,7 +285,8 @@ def received(rx_unix: float, channel: str, data: bytes, status: str, *,
     against anyone; ``id-conflict``, an id another certificate holds; captures before
     2026-11-28 have no ``why``), ``withheld`` (urgent, held back by the OBU's bound on
     the ECDSA at once and still unverified at its tick: never stepped; ``verify``
-    ``held``) or the decode error's reason.
+    ``held``), ``shed`` (waited longer than ``obu run --shed-after`` for an OBU behind
+    real time: dropped undecoded) or the decode error's reason.
     ``sender`` is what the frame says of itself, (TemporaryID, msgCnt, secMark), where it
     decodes; ``verdict`` the 1609.2 verdict where frames are verified.  ``verify`` (``obu
     run --verify-policy on-demand``; absent before 2026-12-06 and under ``all``): when its

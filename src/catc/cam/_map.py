@@ -36,8 +36,6 @@ from catc.geo import EnuFrame
 from catc.pathhistory import ConcisePathHistory
 from catc.predict import make_predictor, predict_columns, prepare
 from catc.predict.base import Observation, Predictor
-from catc.predict.hgp import HgpConfig
-from catc.predict.hgp.table import HgpTable, supported
 
 
 class ContextAwareMap:
@@ -229,13 +227,18 @@ class ContextAwareMap:
         return make_predictor(self.config.predictor, **self._predictor_kwargs)
 
 
-def hgp_table(config: CamConfig, kwargs: Mapping) -> HgpTable | None:
-    """The :class:`HgpTable` of the RVs' predictors when ``config`` asks for the HGP and the
-    table computes it (``hgp_table``; only ``bank`` and ``config`` given, a configuration
-    :func:`~catc.predict.hgp.table.supported` takes); None: one object per RV."""
+def hgp_table(config: CamConfig, kwargs: Mapping):
+    """The :class:`~catc.predict.hgp.table.HgpTable` of the RVs' predictors when ``config``
+    asks for the HGP and the table computes it (``hgp_table``; only ``bank`` and ``config``
+    given, a configuration :func:`~catc.predict.hgp.table.supported` takes); None: one
+    object per RV.  The HGP (and numba) is imported only then: a CA-TC on another
+    predictor starts without it."""
     if not (config.hgp_table and config.predictor == "hgp" and set(kwargs) <= {"bank",
                                                                                "config"}):
         return None
+    from catc.predict.hgp import HgpConfig
+    from catc.predict.hgp.table import HgpTable, supported
+
     hgp = kwargs.get("config") or HgpConfig()
     return HgpTable(kwargs.get("bank"), hgp) if supported(hgp) else None
 

@@ -61,7 +61,7 @@ LANE = 3.6
 PER = 0.5
 DT = 0.1
 TARGETS = ((500, 20.0), (1000, 40.0))  # (RVs, p99 ms), at PER 50 %
-#: The HGP with one HgpPredictor object per RV (CamConfig.hgp_table=False): the "before"
+#: The HGP with one HgpPredictor object per RV (CamConfig.batched=False): the "before"
 #: of the HGP table (issue 30), for --predictors hgp,hgp-objects,ca.
 OBJECTS = "hgp-objects"
 
@@ -121,7 +121,7 @@ def run(n: int, predictor: str, ticks: int, warmup: int,
     policy = GcPolicy()
     objects = predictor == OBJECTS  # the HGP as one object per RV, not a table's rows
     cam = ContextAwareMap(CamConfig(predictor="hgp" if objects else predictor, origin=ORIGIN,
-                                    hgp_table=not objects), SafetyApps())
+                                    batched=not objects), SafetyApps())
     for now, host, msgs in data[:warmup]:
         cam.step(now, host, msgs)
         policy.after_tick()

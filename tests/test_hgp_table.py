@@ -150,7 +150,7 @@ def test_the_ca_tc_on_the_table_is_the_ca_tc_on_objects() -> None:
     from catc.cam import CamConfig, ContextAwareMap
 
     scene = step.scene(120, 160)
-    maps = [ContextAwareMap(CamConfig(origin=step.ORIGIN, hgp_table=flag), SafetyApps())
+    maps = [ContextAwareMap(CamConfig(origin=step.ORIGIN, batched=flag), SafetyApps())
             for flag in (True, False)]
     assert maps[0]._hgp is not None and maps[1]._hgp is None
     for now, host, msgs in scene:

@@ -95,10 +95,13 @@ class CamConfig:
     #: Vehicle width (m) when a BSM does not say.
     default_width_m: float = 1.9
     #: With ``predictor="hgp"`` (a configuration :func:`catc.predict.hgp.table.supported`
-    #: takes): every RV's predictor a row of one :class:`~catc.predict.hgp.table.HgpTable`,
+    #: takes): every RV's predictor a row of one :class:`~catc.predict.hgp.table.HgpTable`
+    #: and its concise path history a row of one :class:`catc.cam._histories.PathHistories`,
     #: the same answers bit for bit at a fraction of the cost per tick; False: one
-    #: :class:`~catc.predict.hgp.HgpPredictor` object per RV (``bench/step.py`` times both).
-    hgp_table: bool = True
+    #: :class:`~catc.predict.hgp.HgpPredictor` and one
+    #: :class:`~catc.pathhistory.ConcisePathHistory` object per RV (``bench/step.py`` times
+    #: both).  Other predictors keep the objects (and start without numba).
+    batched: bool = True
 
     def __post_init__(self) -> None:
         positive = ("horizon_s", "stale_after_s", "max_speed", "max_accel",

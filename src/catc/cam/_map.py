@@ -57,7 +57,13 @@ class ContextAwareMap:
         self._host_t = -math.inf
         self.counters: dict[str, int] = dict.fromkeys(COUNTERS, 0)
         self._hgp = hgp_table(self.config, self._predictor_kwargs)
-        self._table = TrackTable(self.config, self.counters, self._new_predictor)
+        histories = None
+        if self._hgp is not None:  # numba is in use: the histories batched too
+            from catc.cam._histories import PathHistories
+
+            histories = PathHistories(self.config.ph_tolerance_m)
+        self._table = TrackTable(self.config, self.counters, self._new_predictor,
+                                 histories.row if histories is not None else None)
 
     # -- public ---------------------------------------------------------------------------
     def __len__(self) -> int:
@@ -229,11 +235,11 @@ class ContextAwareMap:
 
 def hgp_table(config: CamConfig, kwargs: Mapping):
     """The :class:`~catc.predict.hgp.table.HgpTable` of the RVs' predictors when ``config``
-    asks for the HGP and the table computes it (``hgp_table``; only ``bank`` and ``config``
+    asks for the HGP and the table computes it (``batched``; only ``bank`` and ``config``
     given, a configuration :func:`~catc.predict.hgp.table.supported` takes); None: one
     object per RV.  The HGP (and numba) is imported only then: a CA-TC on another
     predictor starts without it."""
-    if not (config.hgp_table and config.predictor == "hgp" and set(kwargs) <= {"bank",
+    if not (config.batched and config.predictor == "hgp" and set(kwargs) <= {"bank",
                                                                                "config"}):
         return None
     from catc.predict.hgp import HgpConfig

@@ -92,16 +92,21 @@ class TrackTable:
     """Every RV's :class:`Track`, by TemporaryID, and the rules that admit a BSM to it.
 
     ``counters`` is the CAM's dict of :data:`COUNTERS`, which the rules count into;
-    ``new_predictor`` makes the tracking predictor of a new track.  The HV's own ids and
+    ``new_predictor`` makes the tracking predictor of a new track, ``new_history`` its
+    concise path history (default a :class:`~catc.pathhistory.ConcisePathHistory`).  The
+    HV's own ids and
     recent positions are kept too (:meth:`note_host_id`, :meth:`note_host_position`): a
     BSM of ours heard back, or a bit-flipped copy of it, is no remote vehicle.
     """
 
     def __init__(self, config: CamConfig, counters: dict[str, int],
-                 new_predictor: Callable[[], Predictor]) -> None:
+                 new_predictor: Callable[[], Predictor],
+                 new_history: Callable[[], ConcisePathHistory] | None = None) -> None:
         self.config = config
         self.counters = counters
         self._new_predictor = new_predictor
+        self._new_history = new_history or (
+            lambda: ConcisePathHistory(tolerance_m=config.ph_tolerance_m))
         self.tracks: dict[int, Track] = {}
         self.tentative: dict[int, None] = {}  # ids of tentative tracks, least recently heard first
         self.host_ids: dict[int, float] = {}  # the HV's temporary ids -> last seen
@@ -305,16 +310,17 @@ class TrackTable:
         tr = self.tracks.pop(temp_id, None)
         if tr is None:
             return False
-        release = getattr(tr.predictor, "release", None)  # a row of an HgpTable
-        if release is not None:
-            release()
+        for part in (tr.predictor, tr.history):  # rows of tables (CamConfig.batched)
+            release = getattr(part, "release", None)
+            if release is not None:
+                release()
         return True
 
     def _new_track(self, now: float, t: float, m: BSM, x: float, y: float, frame: EnuFrame,
                    need: int = 1, verified: bool = True) -> None:
         pred = self._new_predictor()
         pred.update(_observation(t, x, y, m))
-        hist = ConcisePathHistory(tolerance_m=self.config.ph_tolerance_m)
+        hist = self._new_history()
         if m.path_history is not None:
             self._fill_history(hist, m, t, -math.inf, frame)
         hist.add(t, x, y)

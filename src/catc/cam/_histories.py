@@ -130,9 +130,9 @@ class PathHistories:
             xs, ys = self.kept[s, 1:3, n - 1::-1].tolist() if n else ([], [])
             if n and not head_kept:
                 hx, hy = self.f[s, _HX:_HY + 1].tolist()
-                out = ((hx, hy), *zip(xs, ys))
+                out = ((hx, hy), *zip(xs, ys, strict=True))
             else:
-                out = tuple(zip(xs, ys))
+                out = tuple(zip(xs, ys, strict=True))
             self._cache[s] = out
         return out
 

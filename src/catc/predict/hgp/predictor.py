@@ -133,7 +133,8 @@ class HgpPredictor(WindowPredictor):
         return sum(1 for o in self._obs if last - o.t <= self.config.window_s + 1e-9)
 
     # -- internals -----------------------------------------------------------------------
-    def _ca(self, last: Observation, tau: float) -> Prediction:
+    @staticmethod
+    def _ca(last: Observation, tau: float) -> Prediction:
         """Constant acceleration along the last heading, stopping at zero speed."""
         a = last.accel
         stop = -last.speed / a if a < 0 else math.inf

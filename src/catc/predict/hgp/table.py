@@ -493,7 +493,7 @@ class HgpTable:
         if tau == 0.0:
             return bsm_prediction(last)
         if self.hi[s] - self.lo[s] < c.min_points:
-            return HgpPredictor._ca(None, last, tau)  # type: ignore[arg-type]  # no self
+            return HgpPredictor._ca(last, tau)
         f = self.forecast[s]
         if f is None or not covers(f, tau, c.horizon_s):
             self._forecasts(np.array([s]), np.array([forecast_steps(max(tau, 3.0), c)]))

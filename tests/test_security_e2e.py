@@ -60,8 +60,10 @@ def test_signed_run_verifies_every_frame_and_scores_like_the_unsigned_run(pki, t
     # --collect-ms 30: on a loaded machine the signing RVE's last frames of a tick can
     # trail its host frame by more than the default 5 ms; both runs must step the same
     # frames at the same ticks for their scores to be equal
+    # --verify-policy all: every frame verified on arrival, as this test means (on demand,
+    # the default, steps frames unverified when the queue falls behind: no verdict then)
     obu = start_obu(signed, ports, "--predictor", "ca", "--verify", "enforce",
-                    "--trust", str(pki), "--collect-ms", "30")
+                    "--verify-policy", "all", "--trust", str(pki), "--collect-ms", "30")
     summary = rve(ports, *RUN, "--sign", str(pki), "--capture", str(signed))
     _, err = finish(obu)
     c = _counters(err)
@@ -249,8 +251,8 @@ def _tshark(*args: str) -> str:
 
 def test_tshark_dissects_the_rves_signed_wsmp_capture(pki, tmp_path):
     ports = free_ports()
-    obu = start_obu(tmp_path, ports, "--predictor", "ca", "--verify", "enforce", "--trust",
-                    str(pki))
+    obu = start_obu(tmp_path, ports, "--predictor", "ca", "--verify", "enforce",
+                    "--verify-policy", "all", "--trust", str(pki))  # every frame, on arrival
     summary = rve(ports, "--sign", str(pki), "--framing", "wsmp", "--per", "0", "--asap",
                   "--duration", "2", "--capture", str(tmp_path))
     _, err = finish(obu)

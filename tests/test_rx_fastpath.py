@@ -233,6 +233,22 @@ def _same_check(pairs, u: Unwrapped) -> set[str]:
     return reasons
 
 
+def _checked(datas) -> tuple[list[bytes], set[str]]:
+    """The frames of ``datas`` that open, and the reasons :func:`_same_check` found for
+    them (the fast and the previous ``check`` agreeing on each)."""
+    pairs = _verifiers()
+    frames, reasons = [], set()
+    for d in datas:
+        try:
+            frame, u = open_envelope(d)
+        except DecodeError:
+            continue
+        frames.append(frame)
+        if u is not None:
+            reasons |= _same_check(pairs, u)
+    return frames, reasons
+
+
 @cache
 def _variants() -> dict[str, bytes]:
     """Hand-made frames, one per form the fast path looks at (module docstring of
@@ -328,17 +344,7 @@ def test_variants_agree(monkeypatch: pytest.MonkeyPatch) -> None:
                      "psid 0x21", "psid 0x8000", "psid 0", "high s", "r zero", "r order",
                      "s zero", "frame 128", "frame 300", "frame 0", "unknown digest",
                      "future", "long length 0x81", "long length 0x82"}
-    pairs = _verifiers()
-    reasons = set()
-    frames = []
-    for d in variants.values():
-        try:
-            frame, u = open_envelope(d)
-        except DecodeError:
-            continue
-        frames.append(frame)
-        if u is not None:
-            reasons |= _same_check(pairs, u)
+    frames, reasons = _checked(variants.values())
     assert {"checked", "replay", "unsupported", "nested", "wsmp-psid", "unknown-signer",
             "wrong-psid", "expired", "stale", "message-expired", "non-canonical",
             "unsigned"} <= reasons
@@ -408,15 +414,6 @@ def test_random_flips_agree(monkeypatch: pytest.MonkeyPatch) -> None:
         mutated.append(bytes(data))
     taken = sum(_same_open(d) for d in mutated)
     assert taken > FLIPS // 3  # most flips land in the frame, the times, the signature
-    pairs = _verifiers()
-    frames, reasons = [], set()
-    for d in mutated:
-        try:
-            frame, u = open_envelope(d)
-        except DecodeError:
-            continue
-        frames.append(frame)
-        if u is not None:
-            reasons |= _same_check(pairs, u)
+    frames, reasons = _checked(mutated)
     assert {"checked", "unknown-signer", "non-canonical", "stale"} <= reasons
     assert _same_decode(frames, monkeypatch) > FLIPS // 3

@@ -117,7 +117,7 @@ def predict_columns(predictors, t0: float, t1: float):
     :class:`~catc.predict.base.BatchPredictor` (``plan_pair``)."""
     import numpy as np
 
-    from catc.predict.forecast import read_many
+    from catc.predict.forecast import fill_columns
 
     n = len(predictors)
     out = np.empty((10, n))
@@ -142,21 +142,7 @@ def predict_columns(predictors, t0: float, t1: float):
             reads1.append((i, b))
         else:
             whole1.append((i, b.x, b.y, b.speed, b.heading, b.var_x, b.var_y))
-    for j in (0, 1):
-        if whole[j]:
-            rows = np.array(whole[j]).T
-            idx = rows[0].astype(np.intp)
-            out[j:8:2, idx] = rows[1:5]
-            if j == 0:
-                out[8:, idx] = rows[5:]
-        if reads[j]:
-            idx = [i for i, _ in reads[j]]
-            values, src = read_many([a for _, a in reads[j]])
-            out[j:8:2, idx] = values[:4]
-            if j == 0:
-                out[8:, idx] = values[4:]
-                for i, s in zip(idx, src, strict=True):
-                    sources[i] = s
+    fill_columns(out, sources, whole, reads)
     return out, sources
 
 

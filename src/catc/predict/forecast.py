@@ -136,6 +136,30 @@ def read_many(answers: list[tuple[Forecast, float]]) -> tuple[np.ndarray, list[s
     return out, sources
 
 
+def fill_columns(out: np.ndarray, sources: list[str], whole: tuple[list, list],
+                 reads: tuple[list, list]) -> None:
+    """Into ``out`` (10, n: x, y, speed, heading at t0 and t1 interleaved, then var_x and
+    var_y at t0) and ``sources`` (at t0): the answers of :func:`catc.predict.
+    predict_columns`, per time j (0: t0, 1: t1) ``whole[j]`` rows of (column, x, y,
+    speed, heading, var_x, var_y) (their sources set by the caller) and ``reads[j]``
+    pairs of (column, (forecast, tau)), read at once (:func:`read_many`)."""
+    for j in (0, 1):
+        if whole[j]:
+            rows = np.array(whole[j]).T
+            idx = rows[0].astype(np.intp)
+            out[j:8:2, idx] = rows[1:5]
+            if j == 0:
+                out[8:, idx] = rows[5:]
+        if reads[j]:
+            idx = [i for i, _ in reads[j]]
+            values, src = read_many([a for _, a in reads[j]])
+            out[j:8:2, idx] = values[:4]
+            if j == 0:
+                out[8:, idx] = values[4:]
+                for i, s in zip(idx, src, strict=True):
+                    sources[i] = s
+
+
 def bsm_prediction(last: Observation) -> Prediction:
     """The state a fresh BSM gives (zero variance, source ``"bsm"``)."""
     return Prediction(last.x, last.y, last.speed, last.heading, 0.0, 0.0, "bsm")

@@ -39,8 +39,8 @@ from catc.predict.forecast import (
     Forecast,
     bsm_prediction,
     covers,
+    fill_columns,
     read,
-    read_many,
     read_xy,
 )
 from catc.predict.hgp.branches import Branches
@@ -384,30 +384,20 @@ class HgpTable:
                                      float(last[s, _YAW]), True)
         return out
 
-    def _regular_bank(self) -> tuple:
-        c = self.config
-        regular = self.shared.regular
-        cache = regular.get(c.tw)
-        if cache is None:  # WindowState.regular_bank's
-            from catc.predict.hgp.reference import RegularSlopeBank
-
-            cache = regular[c.tw] = (
-                RegularSlopeBank(self.bank.speed, c.tw, c.noise_speed, c.noise_accel),
-                RegularSlopeBank(self.bank.heading, c.tw, c.noise_heading, c.noise_yaw))
-        return cache
-
     def _select(self, slots: np.ndarray, prep: _Prepared, items: np.ndarray) -> None:
         """``selection.select_batch`` of the rows ``slots[items]``."""
         rows = slots[items]
         self.n_selections[rows] += 1
         self.since[rows] = 0
         regular = items[prep.regular[items]]
-        if len(regular) == 1:
-            i = int(regular[0])
-            self.sel[slots[i]] = regular_index(prep.rel(i), self._regular_bank())
-        elif len(regular):
-            self.sel[slots[regular]] = np.array(
-                regular_indices(prep.stack(regular), self._regular_bank())).T
+        if len(regular):
+            cache = self.shared.regular_bank(self.bank, self.config)
+            if len(regular) == 1:
+                i = int(regular[0])
+                self.sel[slots[i]] = regular_index(prep.rel(i), cache)
+            else:
+                self.sel[slots[regular]] = np.array(
+                    regular_indices(prep.stack(regular), cache)).T
         by_len: dict[int, list[int]] = {}
         for i in items[~prep.regular[items]].tolist():
             by_len.setdefault(prep.rel(i).shape[1], []).append(i)
@@ -447,7 +437,8 @@ class HgpTable:
                 var = np.empty((len(members), 2, count))
                 reg = np.flatnonzero(regular)
                 if len(reg):  # cached weights: one matrix product per bank model in use
-                    regular_posteriors(self._regular_posteriors(count), sel[reg].astype(np.intp),
+                    regular_posteriors(self.shared.regular_posteriors(self.bank, c, count),
+                                       sel[reg].astype(np.intp),
                                        prep.stack(members[reg]), reg.tolist(), mean, var)
                 for lo in range(0, len(direct), POSTERIOR_CHUNK):
                     rows = direct[lo:lo + POSTERIOR_CHUNK]
@@ -465,20 +456,6 @@ class HgpTable:
             for s, f in zip(ms_list, made, strict=True):
                 forecast[s] = f
             self.f_end[ms] = made[0].end
-
-    def _regular_posteriors(self, count: int) -> tuple:
-        c = self.config
-        post = self.shared.posterior.get((c.tw, count))
-        if post is None:  # WindowState.regular_posteriors'
-            from catc.predict.hgp.reference import RegularSlopePosterior
-
-            grid = forecast_grid(count)[0]
-            post = self.shared.posterior[c.tw, count] = (
-                RegularSlopePosterior(self.bank.speed, c.tw, c.noise_speed, c.noise_accel,
-                                      grid),
-                RegularSlopePosterior(self.bank.heading, c.tw, c.noise_heading, c.noise_yaw,
-                                      grid))
-        return post
 
     # -- answers --------------------------------------------------------------------------
     def plan(self, row: HgpRow, t: float):
@@ -544,7 +521,7 @@ class HgpTable:
                 strict=True))
             for i in np.flatnonzero(kin).tolist():
                 name = c.branches[int(b[i]) - 1]
-                whole[j].append((i, self._branch(int(slots[i]), name).predict(t)))
+                _whole(whole, sources, j, i, self._branch(int(slots[i]), name).predict(t))
         for i in np.flatnonzero(scalar).tolist():
             row = rows[i]
             for j, t in enumerate((t0, t1)):
@@ -552,22 +529,17 @@ class HgpTable:
                 if a.__class__ is tuple:
                     reads[j].append((i, a))
                 else:
-                    whole[j].append((i, a))
-        for j in (0, 1):
-            for i, p in whole[j]:
-                out[j:8:2, i] = (p.x, p.y, p.speed, p.heading)
-                if j == 0:
-                    out[8:, i] = (p.var_x, p.var_y)
-                    sources[i] = p.source
-            if reads[j]:
-                idx = [i for i, _ in reads[j]]
-                values, src = read_many([a for _, a in reads[j]])
-                out[j:8:2, idx] = values[:4]
-                if j == 0:
-                    out[8:, idx] = values[4:]
-                    for i, s in zip(idx, src, strict=True):
-                        sources[i] = s
+                    _whole(whole, sources, j, i, a)
+        fill_columns(out, sources, whole, reads)
         return out, sources
+
+
+def _whole(whole: tuple[list, list], sources: list[str], j: int, i: int,
+           p: Prediction) -> None:
+    """Prediction ``p`` of column ``i`` at time ``j`` as a row of :func:`fill_columns`."""
+    whole[j].append((i, p.x, p.y, p.speed, p.heading, p.var_x, p.var_y))
+    if j == 0:
+        sources[i] = p.source
 
 
 def _elapsed_many(last_t: np.ndarray, t: float) -> np.ndarray:

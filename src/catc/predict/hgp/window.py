@@ -76,6 +76,28 @@ class BankCache:
         self.regular: dict[int, tuple[RegularSlopeBank, RegularSlopeBank]] = {}
         self.posterior: dict[tuple[int, int], tuple[RegularSlopePosterior, ...]] = {}
 
+    def regular_bank(self, bank: KernelBank, c: HgpConfig) -> tuple[RegularSlopeBank, ...]:
+        """The selection cache of a full window of ``c.tw`` samples exactly DT apart (no
+        loss) for ``bank``, this cache's bank: built once, shared by all predictors."""
+        cache = self.regular.get(c.tw)
+        if cache is None:
+            cache = self.regular[c.tw] = (
+                RegularSlopeBank(bank.speed, c.tw, c.noise_speed, c.noise_accel),
+                RegularSlopeBank(bank.heading, c.tw, c.noise_heading, c.noise_yaw))
+        return cache
+
+    def regular_posteriors(self, bank: KernelBank, c: HgpConfig, count: int
+                           ) -> tuple[RegularSlopePosterior, ...]:
+        """The speed and heading :class:`RegularSlopePosterior` of every model of ``bank``
+        (this cache's), for a full regular window and a forecast of ``count`` points."""
+        post = self.posterior.get((c.tw, count))
+        if post is None:
+            grid = forecast_grid(count)[0]
+            post = self.posterior[c.tw, count] = (
+                RegularSlopePosterior(bank.speed, c.tw, c.noise_speed, c.noise_accel, grid),
+                RegularSlopePosterior(bank.heading, c.tw, c.noise_heading, c.noise_yaw, grid))
+        return post
+
     def pair(self, i: int, j: int) -> np.ndarray:
         """The constants of speed model ``i`` and heading model ``j``, (2, 6)."""
         p = self.pairs.get((i, j))
@@ -205,25 +227,8 @@ class WindowState:
     def regular_bank(self) -> tuple[RegularSlopeBank, ...]:
         """:meth:`regular_cache` without the check that the window is regular (the caller
         made it, e.g. for many windows at once: :func:`~.stacked.prepare_many`)."""
-        c = self.config
-        regular = self.shared.regular
-        cache = regular.get(c.tw)
-        if cache is None:
-            cache = regular[c.tw] = (
-                RegularSlopeBank(self.bank.speed, c.tw, c.noise_speed, c.noise_accel),
-                RegularSlopeBank(self.bank.heading, c.tw, c.noise_heading, c.noise_yaw))
-        return cache
+        return self.shared.regular_bank(self.bank, self.config)
 
     def regular_posteriors(self, count: int) -> tuple[RegularSlopePosterior, ...]:
-        """The speed and heading :class:`RegularSlopePosterior` of every bank model, for a
-        full regular window and a forecast of ``count`` points (cached per bank)."""
-        c = self.config
-        post = self.shared.posterior.get((c.tw, count))
-        if post is None:
-            grid = forecast_grid(count)[0]
-            post = self.shared.posterior[c.tw, count] = (
-                RegularSlopePosterior(self.bank.speed, c.tw, c.noise_speed, c.noise_accel,
-                                      grid),
-                RegularSlopePosterior(self.bank.heading, c.tw, c.noise_heading, c.noise_yaw,
-                                      grid))
-        return post
+        """:meth:`BankCache.regular_posteriors` of this window's bank."""
+        return self.shared.regular_posteriors(self.bank, self.config, count)

@@ -338,9 +338,12 @@ def test_running_window_equals_the_observation_window():
             p.predict(1.0)
 
 
-def test_stacked_likelihood_and_posterior_equal_the_readable_formulas():
+@pytest.mark.parametrize("aligned", [False, True], ids=["off-grid", "on-grid"])
+def test_stacked_likelihood_and_posterior_equal_the_readable_formulas(aligned):
+    """Times anywhere (an exponential per covariance element) and on the 0.1 s grid of
+    received BSMs (a table per DT step, gpstack._window_exps), one window spanning 80 s."""
     from catc.predict.hgp import lml_with_slope
-    from catc.predict.hgp.gpstack import lml_stack, posterior_stack, series_consts
+    from catc.predict.hgp.gpstack import lml_stack, on_grid, posterior_stack, series_consts
 
     rng = np.random.default_rng(8)
     cfg = HgpConfig()
@@ -352,6 +355,14 @@ def test_stacked_likelihood_and_posterior_equal_the_readable_formulas():
     rels, pairs, wants = [], [], []
     for span in (2.9, 12.0, 80.0):  # the last underflows exp for the short γ
         tau = np.append(-np.sort(rng.uniform(0.05, span, 19))[::-1], 0.0)
+        if aligned:  # distinct steps back, with the rounding of epoch-second times
+            tau[:19] = -np.sort(rng.choice(np.arange(1, int(span * 10)), 19, replace=False)
+                                )[::-1] * 0.1 + rng.uniform(-2e-7, 2e-7, 19)
+        snapped, steps = on_grid(tau[None])
+        assert (steps is not None) == aligned
+        if aligned:  # what the times mean: whole steps of 0.1 s
+            assert np.abs(snapped[0] - tau).max() < 3e-7
+            tau = snapped[0]
         z = np.vstack([np.append(np.cumsum(rng.normal(size=20)) * 0.1, 0.4),
                        np.append(np.cumsum(rng.normal(size=20)) * 0.01, -0.05)])
         z[:, 19] = 0.0

@@ -80,25 +80,28 @@ def _solve(a, k, nb, rhs, out):  # pragma: no cover - compiled
 
 
 @njit(**_OPTS)
-def _assemble(a, e, tau, tt_w, n, nb, s2, m2c, noise, kdd):  # pragma: no cover
+def _assemble(a, e, pidx, tau, tt_w, n, nb, s2, m2c, noise, kdd):  # pragma: no cover
     """The (n + 1) × (n + 1) covariance of n values at ``tau`` (ending at 0) and the slope
     at 0 (catc.predict.hgp.reference.slope_system) for nb interleaved systems on the same times,
-    lower triangle: ``e`` (P, nb) the packed α1²·exp(c·d²) of the values, ``tt_w`` scratch
-    (nb,).  (:func:`posterior` assembles its own: its systems have different times.)"""
+    lower triangle: ``e[pidx[q], s]`` the packed element q's α1²·exp(c·d²) of the values
+    under model s, ``tt_w`` scratch (nb,).  (:func:`posterior` assembles its own: its
+    systems have different times.)"""
     for i in range(n):
         base = i * (i + 1) // 2
         for j in range(i + 1):
             tt = tau[i] * tau[j]
+            q = pidx[base + j]
             for s in range(nb):
-                a[i, j, s] = e[base + j, s] + s2[s] * tt
+                a[i, j, s] = e[q, s] + s2[s] * tt
         for s in range(nb):
             a[i, i, s] += noise[s]
     # slope row: ∂κ(τ_j, s)/∂s at s = 0 = τ_j·(α1²/γ²·exp(−τ_j²/(2γ²)) + α2²); the
     # exponential is the packed entry (n−1, j), since τ_{n−1} = 0
     last = (n - 1) * n // 2
     for j in range(n):
+        q = pidx[last + j]
         for s in range(nb):
-            tt_w[s] = e[last + j, s] * m2c[s] + s2[s]
+            tt_w[s] = e[q, s] * m2c[s] + s2[s]
         for s in range(nb):
             a[n, j, s] = tau[j] * tt_w[s]
     for s in range(nb):
@@ -106,18 +109,19 @@ def _assemble(a, e, tau, tt_w, n, nb, s2, m2c, noise, kdd):  # pragma: no cover
 
 
 @njit(**_OPTS)
-def select_lml(e, tau, z, p, m, out, a):  # pragma: no cover - compiled
+def select_lml(tab, tw, pidx, tau, z, p, m, out, a):  # pragma: no cover - compiled
     """Log marginal likelihood of each window under each model, values and slope together
     (catc.predict.hgp.reference.lml_with_slope).
 
-    ``e`` (B, P, S): packed α1²·exp(c·d²) of window b under model s (P = n(n+1)/2);
+    ``tab[tw[b], pidx[b, q], s]``: α1²·exp(c·d²) of packed element q (P = n(n+1)/2) of
+    window b under model s (:func:`catc.predict.hgp.gpstack._window_exps`);
     ``tau`` (B, n) each ending at 0; ``z`` (B, 2, n + 1) speed and heading values with their
     slope; ``p`` (S, CONSTS) model constants, the first ``m`` speed models (scored on z[:, 0]),
     then heading ones (on z[:, 1]); ``out`` (B, S); ``a`` a work array of at least
     (n + 1)² · S (a fresh one per call costs page faults: 250 kB).  A model whose
     covariance is not positive definite scores −inf."""
-    bsz, _, ns = e.shape
-    n = tau.shape[1]
+    bsz, n = tau.shape
+    ns = tab.shape[2]
     k = n + 1
     a = a[:k * k * ns].reshape((k, k, ns))
     w = np.empty((k, ns))
@@ -130,7 +134,7 @@ def select_lml(e, tau, z, p, m, out, a):  # pragma: no cover - compiled
     kdd = p[:, KDD].copy()
     half_log_2pi = 0.5 * k * math.log(2.0 * math.pi)
     for b in range(bsz):
-        _assemble(a, e[b], tau[b], tt_w, n, ns, s2, m2c, noise, kdd)
+        _assemble(a, tab[tw[b]], pidx[b], tau[b], tt_w, n, ns, s2, m2c, noise, kdd)
         _factor(a, k, ns, bad)
         for i in range(k):
             for s in range(m):
@@ -149,12 +153,13 @@ def select_lml(e, tau, z, p, m, out, a):  # pragma: no cover - compiled
 
 
 @njit(**_OPTS)
-def posterior(e, rel, grid, p, mean, var, a):  # pragma: no cover - compiled
+def posterior(tab, tw, pidx, rel, grid, p, mean, var, a):  # pragma: no cover - compiled
     """Posterior mean and latent variance at ``grid`` (0, Δ, 2Δ, …) of R = 2B systems, each
     conditioned on its values and slope (catc.predict.hgp.reference.posterior_with_slope); system
     r = 2b + c is series c (0 speed, 1 heading) of window b.
 
-    ``e`` (B, P, 2): packed α1²·exp(c·d²) of each window under its two models; ``rel``
+    ``tab[tw[b], pidx[b, q], c]``: α1²·exp(c·d²) of packed element q of window b under its
+    model for series c (:func:`catc.predict.hgp.gpstack._window_exps`); ``rel``
     (B, 3, n + 1): τ then 0, speed values and slope, heading values and slope; ``p``
     (B, 2, CONSTS) the model constants; ``mean``, ``var`` (B, 2, G); ``a`` a work array of at
     least (n + 1)² · BLOCK.
@@ -165,7 +170,7 @@ def posterior(e, rel, grid, p, mean, var, a):  # pragma: no cover - compiled
     error ≤ 2 ulp per step; these enter the mean and variance linearly).  Values below
     1e-290 are flushed to 0 (they only decrease, and subnormals are slow).
     Raises when a covariance is not positive definite (it never is for bank models)."""
-    bsz = e.shape[0]
+    bsz = rel.shape[0]
     nr = 2 * bsz
     g_count = grid.shape[0]
     dt = grid[1] - grid[0] if g_count > 1 else 0.0
@@ -202,11 +207,13 @@ def posterior(e, rel, grid, p, mean, var, a):  # pragma: no cover - compiled
                 tau[i, s] = rel[b, 0, i]
             for i in range(k):
                 zz[i, s] = rel[b, 1 + c, i]
+            e = tab[tw[b]]
+            pb = pidx[b]
             for i in range(n):
                 for j in range(i + 1):
-                    a[i, j, s] = e[b, i * (i + 1) // 2 + j, c]
+                    a[i, j, s] = e[pb[i * (i + 1) // 2 + j], c]
             for i in range(n):
-                cur[i, s] = e[b, last + i, c]
+                cur[i, s] = e[pb[last + i], c]
                 step[i, s] = math.exp(2.0 * cc[s] * dt * tau[i, s] * -1.0)
         for i in range(n):
             for j in range(i + 1):

@@ -3,7 +3,9 @@ stacked over bank models and over windows, with far fewer numpy and LAPACK calls
 not arithmetic, is what a 31 × 31 system costs from Python).
 
 numpy computes the exponentials of the RBF term of κ (paper eq. "covariance func") for
-every window and model in one matrix product (:func:`_window_exps`); the compiled kernels
+every window and model in one matrix product (:func:`_window_exps`): for windows of
+received BSMs, on the 0.1 s grid, one per DT step of their span rather than one per
+element of each covariance (a table the kernels read by index); the compiled kernels
 of :mod:`catc.predict.gpkernels` assemble the covariances, factor them side by side and
 give the selection scores (:func:`lml_stack`, paper eq. "eq-,odelselection") or the
 posteriors (:func:`posterior_stack`, paper eq. "eq:forecastingheadingspeed").  A model is
@@ -86,14 +88,64 @@ def _tril(n: int) -> tuple[np.ndarray, np.ndarray]:
     return t
 
 
-def _window_exps(tau: np.ndarray, coef: np.ndarray, name: str) -> np.ndarray:
+#: Window times within this of a multiple of DT count as on the grid (the tolerance of the
+#: regular-window check; epoch-second times carry rounding errors of ~2e-7 s).
+GRID_TOL = 1e-6
+
+#: A grid window's table of exponentials is used while it has at most this many entries per
+#: packed element (a window spanning hours would make it long: then exponentials per element).
+_TABLE_MAX = 4
+
+
+def _grid_steps(tau: np.ndarray) -> np.ndarray | None:
+    """The windows' times ``tau`` (B, n, ascending to 0) as whole DT steps back, (B, n)
+    int64, if every time is on the grid (within :data:`GRID_TOL`) and the span is short
+    enough for a table (:data:`_TABLE_MAX`); else None."""
+    steps = np.rint(tau * (-1.0 / DT))
+    if (np.abs(steps * DT + tau).max(initial=0.0) > GRID_TOL
+            or steps.max(initial=0.0) >= _TABLE_MAX * tau.shape[1] * (tau.shape[1] + 1) / 2):
+        return None
+    return steps.astype(np.int64)
+
+
+def on_grid(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """``tau`` (B, n) and its :func:`_grid_steps`; times on the grid are replaced by their
+    exact multiples of DT (a received BSM's time is; its difference from the last one's as
+    float seconds is only within ~1e-7 s of it)."""
+    steps = _grid_steps(tau)
+    return (tau, None) if steps is None else (steps * -DT, steps)
+
+
+def _window_exps(tau: np.ndarray, steps: np.ndarray | None, coef: np.ndarray,
+                 name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """α1²·exp(c·d²) = exp(c·d² + log α1²), the RBF term of κ (paper eq. "covariance func",
-    c = −1/(2γ²)), for the packed lower triangle of the squared
-    time differences d² of each window ``tau`` (B, n), under models whose rows c and
-    log α1² are ``coef`` (2, M), shared by all windows, or (B, 2, M), one set per window:
-    one matrix product of [d², 1] with them, into work array ``name``; (B, P, M)."""
+    c = −1/(2γ²)), for the packed lower triangle of the time differences d of each window
+    ``tau`` (B, n), under models whose rows c and log α1² are ``coef`` (2, M), shared by all
+    windows, or (B, 2, M), one set per window.
+
+    Returned as a table and where to read it: ``(tab, tw, pidx)``, element q of window b
+    under model s is ``tab[tw[b], pidx[b, q], s]``.  Windows on the 0.1 s grid of received
+    BSMs (``steps``, from :func:`on_grid`) have only as many distinct d as DT steps in their
+    span, so ``tab`` holds exp(c·(k·DT)² + log α1²) per step k (tens of exponentials per
+    model, not n(n+1)/2: a bank selection costs half as much) and ``pidx`` the steps;
+    other windows (``steps`` None) get every element's exponential (``pidx`` the
+    identity).  One matrix product of [d², 1] with the rows, into work array ``name``."""
     bsz, n = tau.shape
     rows, cols = _tril(n)
+    if steps is not None:
+        span = int(steps[:, 0].max(initial=0)) + 1
+        pidx = np.subtract(steps.take(cols, axis=1), steps.take(rows, axis=1))
+        d = np.arange(span) * DT
+        lhs = _scratch("lhs", (span, 2))
+        np.multiply(d, d, out=lhs[:, 0])
+        lhs[:, 1] = 1.0
+        per_window = coef.ndim == 3
+        e = np.matmul(lhs, coef, out=_scratch(
+            name, (bsz if per_window else 1, span, coef.shape[-1])))
+        if _underflows(d[-1], float(coef[..., 0, :].min())):
+            np.maximum(e, -700.0, out=e)
+        tw = np.arange(bsz) if per_window else np.zeros(bsz, dtype=np.int64)
+        return np.exp(e, out=e), tw, pidx
     lhs = _scratch("lhs", (bsz, len(rows), 2))
     # (ndarray.take, not np.take: the latter's Python wrapper was 3 % of an OBU tick)
     d2 = np.subtract(tau.take(rows, axis=1, out=_scratch("rows", (bsz, len(rows)))),
@@ -104,7 +156,8 @@ def _window_exps(tau: np.ndarray, coef: np.ndarray, name: str) -> np.ndarray:
     e = np.matmul(lhs, coef, out=_scratch(name, (bsz, len(rows), coef.shape[-1])))
     if _underflows(-float(tau[:, 0].min()), float(coef[..., 0, :].min())):
         np.maximum(e, -700.0, out=e)
-    return np.exp(e, out=e)
+    pidx = np.broadcast_to(np.arange(len(rows)), (bsz, len(rows))).copy()
+    return np.exp(e, out=e), np.arange(bsz), pidx
 
 
 def lml_stack(tau: np.ndarray, z: np.ndarray, p: np.ndarray, m: int,
@@ -124,10 +177,11 @@ def lml_stack(tau: np.ndarray, z: np.ndarray, p: np.ndarray, m: int,
     models of a window interleaved."""
     del thetas  # the constants carry everything
     bsz, n = tau.shape
-    e = _window_exps(tau, p[:, _C:_LOG_S1 + 1].T, "lml")
+    tau, steps = on_grid(tau)
+    tab, tw, pidx = _window_exps(tau, steps, p[:, _C:_LOG_S1 + 1].T, "lml")
     out = np.empty((bsz, len(p)))
-    gpkernels.select_lml(e, np.ascontiguousarray(tau), np.ascontiguousarray(z), p, m, out,
-                         _scratch("factor", ((n + 1) * (n + 1) * len(p),)))
+    gpkernels.select_lml(tab, tw, pidx, np.ascontiguousarray(tau), np.ascontiguousarray(z),
+                         p, m, out, _scratch("factor", ((n + 1) * (n + 1) * len(p),)))
     return out
 
 
@@ -146,12 +200,16 @@ def posterior_stack(rel: np.ndarray, grid: np.ndarray,
     2B systems interleaved in blocks."""
     bsz, _, k = rel.shape
     n = k - 1
-    tau = rel[:, 0, :n]
+    tau, steps = on_grid(rel[:, 0, :n])
+    if steps is not None:
+        rel = rel.copy()
+        rel[:, 0, :n] = tau
     p = np.ascontiguousarray(p)
-    e = _window_exps(tau, p[:, :, _C:_LOG_S1 + 1].transpose(0, 2, 1), "cov")
+    tab, tw, pidx = _window_exps(tau, steps, p[:, :, _C:_LOG_S1 + 1].transpose(0, 2, 1),
+                                 "cov")
     mean = np.empty((bsz, 2, len(grid)))
     var = np.empty((bsz, 2, len(grid)))
-    gpkernels.posterior(e, np.ascontiguousarray(rel), grid, p, mean, var,
+    gpkernels.posterior(tab, tw, pidx, np.ascontiguousarray(rel), grid, p, mean, var,
                         _scratch("factor", (k * k * gpkernels.BLOCK,)))
     return mean, var
 

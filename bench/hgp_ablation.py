@@ -93,6 +93,9 @@ VARIANTS: dict[str, tuple[str, dict, str]] = {
                  {"branches": ("ca", "kf"), "branch_decay": 0.95}, "default"),
     "br-m0.5": ("branches CA and KF, a kinematic branch only at half the GP's score",
                 {"branches": ("ca", "kf"), "branch_margin": 0.5}, "default"),
+    **{f"fit-{m:g}": (f"a gap keeps the selection when the GP's forecast over it landed "
+                      f"within {m:g} m", {"reselect_fit_m": m}, "default")
+       for m in (0.02, 0.05, 0.1, 0.25, 0.5, 1.0)},
 }
 BASELINES = ("ca", "kf", "ctrv", "imm")
 

@@ -416,7 +416,7 @@ def test_plausibility_bound_never_passes_a_switch():
 
 
 def test_reselection_every_k_samples_and_after_gaps():
-    cfg = HgpConfig(reselect_every=3, reselect_gap_s=0.25)
+    cfg = HgpConfig(reselect_every=3, reselect_gap_s=0.25, reselect_fit_m=0.0)
     p = HgpPredictor(BANK, cfg)
     obs = drive(60, v0=12.0, a=0.3, yaw=2.0)
     counts = []
@@ -441,6 +441,23 @@ def test_reselection_every_k_samples_and_after_gaps():
     assert every.stats["selections"] == 17
     with pytest.raises(ValueError):  # checked by the configuration itself
         HgpConfig(reselect_every=0)
+
+
+def test_a_gap_the_models_forecast_well_keeps_the_selection():
+    """``reselect_fit_m``: a long gap reselects only when the GP's forecast over it, made
+    with the models in use, missed the BSM that ends it by more than that."""
+    obs = drive(60, v0=12.0, a=0.3, yaw=2.0)
+    for fit, moved, again in ((0.0, 0.0, True), (0.25, 0.0, False), (0.25, 1.0, True)):
+        p = HgpPredictor(BANK, HgpConfig(reselect_every=100, reselect_fit_m=fit))
+        for o in obs[:20]:
+            p.update(o)
+            p.predict(o.t + 0.1)
+        before = p.stats["selections"]
+        assert before == 1
+        end = obs[23]._replace(x=obs[23].x + moved)  # three lost: 0.4 s
+        p.update(end)
+        p.predict(end.t + 0.1)
+        assert p.stats["selections"] == before + again, (fit, moved)
 
 
 def test_reused_selection_is_the_selection_made_then():

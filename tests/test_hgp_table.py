@@ -66,15 +66,18 @@ def _same(a, b) -> None:
     assert all(p == q or (p != p and q != q) for p, q in zip(fa, fb, strict=True)), (fa, fb)
 
 
+@pytest.mark.parametrize("fit", [0.0, 0.05], ids=["gaps-reselect", "fit-keeps"])
 @pytest.mark.parametrize("per", [0.0, 0.5, 0.9])
-def test_rows_answer_what_the_objects_answer_bit_for_bit(per: float) -> None:
+def test_rows_answer_what_the_objects_answer_bit_for_bit(per: float, fit: float) -> None:
     """Vehicles fed in lockstep, read every other tick (so a row often has two queued
     observations), forecasts prepared stacked, answers read at the tick and 2 s ahead,
-    and one by one at odd times: every number the same as the objects'."""
+    and one by one at odd times: every number the same as the objects', with and without
+    a fit that lets a selection survive a gap (``reselect_fit_m``)."""
     tracks = _tracks(40, 400, per, seed=int(per * 10))
-    table = HgpTable(capacity=8)  # grows
+    c = HgpConfig(reselect_fit_m=fit)
+    table = HgpTable(capacity=8, config=c)  # grows
     rows = [table.row() for _ in tracks]
-    objs = [HgpPredictor() for _ in tracks]
+    objs = [HgpPredictor(config=c) for _ in tracks]
     pos = [0] * len(tracks)
     for tick in range(1, 400):
         now = round(0.1 * tick, 3)

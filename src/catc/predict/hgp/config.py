@@ -62,6 +62,14 @@ class HgpConfig:
     # (docs/log/2026-11-22-hgp-model-persistency.md).
     reselect_every: int = 10
     reselect_gap_s: float = 0.25
+    # ... unless the GP's forecast over the gap, with the models in use, landed within
+    # ``reselect_fit_m`` of the BSM that ends it: the models still fit, as the paper keeps a
+    # bank model until it misses by PTE_th.  0: every such gap reselects (the rule before).
+    # Chosen by leave-one-trip-out over both datasets (`python bench/hgp_cv.py --a hgp --b
+    # fit-0.02,fit-0.05,fit-0.1`, docs/log/2026-12-06-grid-and-fit.md): 2 cm is within
+    # 1.2 % of PTE95 at every PER on both and skips 18 % of the selections at PER 50 %
+    # (bench/step.py's scene); 5 cm skips 46 % but costs NGSIM 2.4 % at PER 80 %.
+    reselect_fit_m: float = 0.02
     # Data-driven hybrid (issue 17; docs/log/2026-11-25-hgp-branches.md): kinematic predictors run
     # beside the GP (names from catc.predict, e.g. ("ca", "kf")).  At every BSM that ends a gap
     # (one or more BSMs lost) each branch's squared position error at that BSM, from what it had

@@ -20,7 +20,7 @@ from catc.predict.hgp.config import HgpConfig
 from catc.predict.hgp.gpstack import forecast_steps
 from catc.predict.hgp.online import backtest_fails, fit_online
 from catc.predict.hgp.reference import forecast_path, implausible, window_series
-from catc.predict.hgp.selection import select
+from catc.predict.hgp.selection import select, still_fits
 from catc.predict.hgp.stacked import forecast_batch
 from catc.predict.hgp.window import WindowPredictor, WindowState
 from catc.predict.kinematic import elapsed
@@ -62,9 +62,11 @@ class HgpPredictor(WindowPredictor):
             if prev is not None:
                 branches.score_gap(obs, obs.t - prev.t, self._forecast)
             branches.update(obs)
+        keep = (prev is not None and obs.t - prev.t > self.config.reselect_gap_s + 1e-6
+                and still_fits(self.config, self._forecast, obs.t - prev.t, obs.x, obs.y))
         self._obs.append(obs)  # WindowPredictor.update, its time check done above
         self._forecast = None
-        self._state.push(obs)
+        self._state.push(obs, keep)
 
     def predict(self, t: float) -> Prediction:
         answer = self.plan(t)

@@ -13,6 +13,8 @@ from __future__ import annotations
 import numpy as np
 
 from catc.predict import gp
+from catc.predict.forecast import Forecast, covers, read_xy
+from catc.predict.hgp.config import HgpConfig
 from catc.predict.hgp.gpstack import lml_stack, series_consts, stack
 from catc.predict.hgp.reference import RegularSlopeBank, lml_with_slope
 from catc.predict.hgp.window import BankCache, Selection, WindowState
@@ -42,6 +44,17 @@ def select(s: WindowState, tau: np.ndarray, ys: np.ndarray, yh: np.ndarray,
         ls = gp.bank_log_marginal_likelihood(tau, ys, speed_bank, c.noise_speed)
         lh = gp.bank_log_marginal_likelihood(tau, yh, heading_bank, c.noise_heading)
     return speed_bank[int(np.argmax(ls))], heading_bank[int(np.argmax(lh))]
+
+
+def still_fits(c: HgpConfig, f: Forecast | None, gap: float, x: float, y: float) -> bool:
+    """Whether a gap of ``gap`` s that ends at position (``x``, ``y``) keeps the models in
+    use (``HgpConfig.reselect_fit_m``): the GP's forecast ``f`` over the gap, made with
+    them, lands within ``reselect_fit_m`` of it.  False without such a forecast."""
+    fit = c.reselect_fit_m
+    if fit <= 0.0 or f is None or not covers(f, gap, c.horizon_s):
+        return False
+    gx, gy = read_xy(f, gap)
+    return (gx - x) ** 2 + (gy - y) ** 2 <= fit * fit
 
 
 def own_selection(s: WindowState, rel: np.ndarray,

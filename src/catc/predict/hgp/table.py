@@ -53,6 +53,7 @@ from catc.predict.hgp.selection import (
     bank_indices,
     regular_index,
     regular_indices,
+    still_fits,
 )
 from catc.predict.hgp.stacked import POSTERIOR_CHUNK, finish_stack, regular_posteriors
 from catc.predict.hgp.window import bank_cache, window_rel
@@ -274,9 +275,9 @@ class HgpTable:
     def _round(self, items: list[tuple[int, Observation]]) -> None:
         """One observation per row: ``HgpPredictor.update`` of each."""
         c = self.config
-        edges, horizon = c.branch_edges, c.horizon_s
+        edges, horizon, long_gap = c.branch_edges, c.horizon_s, c.reselect_gap_s + 1e-6
         last_t = self.last[:, _T]
-        slots, rows = [], []
+        slots, rows, keep = [], [], []
         for s, obs in items:
             check_observation(obs)  # what the branches' updates check first
             prev_t = float(last_t[s])
@@ -287,16 +288,21 @@ class HgpTable:
                 f = self.forecast[s]
                 if gap > DT + 1e-6 and f is not None and covers(f, gap, horizon):
                     self._score(s, obs, bisect.bisect_left(edges, gap), read_xy(f, gap))
+                if gap > long_gap and still_fits(c, f, gap, obs.x, obs.y):
+                    keep.append(s)
             slots.append(s)
             rows.append(obs)
         if not slots:
             return
+        kept = self.sel[keep]  # the selections that survive their gap (the kernel drops them)
         kf = self._kf
         self._kernel(np.array(slots, dtype=np.int64), np.array(rows, dtype=np.float64),
                      self.buf, self.lo, self.hi, self.turn, self.run, self.since, self.sel,
                      self.last, self.kf_t, self.kf_h, self.kf_e, self.kf_n, self.kf_p,
                      self.kf_a, c.tw, kf.q, kf._r[0], kf._r[1], kf._r[2], c.reselect_gap_s,
                      kf.anchor)
+        if keep:
+            self.sel[keep] = kept
         forecast = self.forecast
         for s in slots:
             forecast[s] = None

@@ -166,8 +166,9 @@ class WindowState:
         self.selection: Selection | None = None
         self.since_selection = 0  # samples received since the selection was made
 
-    def push(self, obs: Observation) -> None:
-        """Append a received sample (later than the last one)."""
+    def push(self, obs: Observation, keep: bool = False) -> None:
+        """Append a received sample (later than the last one); ``keep``: the selection
+        survives a long gap before it (:func:`~.selection.still_fits`)."""
         c = self.config
         prev = self.last
         h = math.radians(obs.heading)
@@ -182,7 +183,7 @@ class WindowState:
                 self.turn += mod - dd
             gap = obs.t - prev.t
             self.run = self.run + 1 if abs(gap - DT) <= 2e-6 else 1
-            if gap > c.reselect_gap_s + 1e-6:
+            if gap > c.reselect_gap_s + 1e-6 and not keep:
                 self.selection = None
         buf = self.buf
         if self.hi == buf.shape[1]:

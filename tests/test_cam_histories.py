@@ -76,3 +76,44 @@ def test_rows_keep_the_points_the_objects_keep(tolerance: float) -> None:
             rows[3].release()
             rows[3], objs[3] = table.row(), ConcisePathHistory(tolerance_m=tolerance)
     assert compared > 10_000 and max(len(r.point_tuple()) for r in rows) > 10
+
+
+def test_trail_offsets_are_trail_offset_s() -> None:
+    """The compiled trail offsets (lane estimation, CA-TC step 6) against
+    catc.classify.trail_offset on the same trails: the HV beside, on, ahead of and
+    behind each trail, heads on a trail's first point (a zero-length segment), empty and
+    one-point histories: every number the same, None where it is None."""
+    from catc.classify import trail_offset
+
+    rng = np.random.default_rng(11)
+    table = PathHistories(0.3, capacity=8)
+    rows = [table.row() for _ in range(40)]
+    for j, row in enumerate(rows):
+        x, y, h = rng.uniform(-50, 50), rng.uniform(-50, 50), rng.uniform(0, 6.3)
+        for k in range(j * 7 % 200):  # row 0 stays empty
+            h += (0.03 if j % 3 else -0.02) + rng.normal(0, 0.01)
+            x, y = x + 2.0 * math.sin(h), y + 2.0 * math.cos(h)
+            row.add(0.1 * k, x, y)
+    checked = found = 0
+    for _ in range(60):
+        heads = []
+        for j, row in enumerate(rows):
+            pts = row.point_tuple()
+            if j % 5 == 0 and pts:
+                heads.append(pts[0])  # a zero-length first segment
+            else:
+                base = pts[0] if pts else (0.0, 0.0)
+                heads.append((base[0] + rng.normal(0, 3), base[1] + rng.normal(0, 3)))
+        pts0 = rows[rng.integers(len(rows))].point_tuple() or ((0.0, 0.0),)
+        anchor = pts0[rng.integers(len(pts0))]
+        p = (anchor[0] + rng.normal(0, 2), anchor[1] + rng.normal(0, 2))
+        got = table.trail_offsets([r.slot for r in rows], np.array(heads), p)
+        for k, row in enumerate(rows):
+            want = trail_offset((heads[k], *row.point_tuple()), p)
+            if want is None:
+                assert np.isnan(got[k]).all(), (k, got[k])
+            else:
+                assert tuple(got[k].tolist()) == want, (k, got[k], want)
+                found += 1
+            checked += 1
+    assert found > 200 and checked - found > 200, (found, checked)

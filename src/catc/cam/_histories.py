@@ -136,6 +136,20 @@ class PathHistories:
             self._cache[s] = out
         return out
 
+    def trail_offsets(self, slots: list[int], heads: np.ndarray, p: tuple[float, float]
+                      ) -> np.ndarray:
+        """:func:`catc.classify.trail_offset` of ``p`` on the trail of each row ``slots[k]``
+        that starts at ``heads[k]`` (the RV's estimate, x and y) and goes on along the
+        row's points: (B, 3) ``s, d, heading_deg``, a row of NaN where it is None.  One
+        compiled loop, the same operations on the same numbers."""
+        if self._pending:
+            self.flush()
+        out = np.empty((len(slots), 3))
+        _trail_kernel()(np.array(slots, dtype=np.int64), np.ascontiguousarray(heads,
+                        dtype=np.float64), float(p[0]), float(p[1]), self.f, self.i,
+                        self.kept, out)
+        return out
+
 
 # the per-row scalars (f) and counts (i)
 _LAST_T, _KEPT_LEN, _HT, _HX, _HY, _REF, _LO, _HI = range(8)
@@ -166,6 +180,80 @@ def _kernels():
         _trim_length = njit(**opts)(_trim_length)
         _KERNEL = njit(**opts)(_add)
     return _KERNEL
+
+
+_TRAIL = None
+
+
+def _trail_kernel():
+    """:func:`_trail_offsets` compiled (numba, cached per machine), when first asked for."""
+    global _TRAIL
+    if _TRAIL is None:
+        from numba import njit
+
+        _TRAIL = njit(cache=True, error_model="numpy")(_trail_offsets)
+    return _TRAIL
+
+
+_RAD2DEG = 180.0 / math.pi  # math.degrees multiplies by this same constant
+
+
+def _trail_offsets(slots, heads, px, py, f, i, kept, out):  # pragma: no cover - compiled
+    """``trail_offset(((hx, hy), *points(s)), (px, py))`` for each row (PathHistories.
+    trail_offsets), operation for operation: ``sqrt``, ``copysign`` and ``atan2`` are the
+    C library's in both, and ``% 360`` is Python's float remainder (CPython's
+    ``float_rem``)."""
+    m = kept.shape[2] + 2
+    tx = np.empty(m)
+    ty = np.empty(m)
+    for b in range(slots.shape[0]):
+        s = slots[b]
+        tx[0], ty[0] = heads[b, 0], heads[b, 1]
+        k = 1
+        n = i[s, _KEPT]
+        if n and not i[s, _HEAD_KEPT]:
+            tx[k], ty[k] = f[s, _HX], f[s, _HY]
+            k += 1
+        for j in range(n - 1, -1, -1):
+            tx[k], ty[k] = kept[s, 1, j], kept[s, 2, j]
+            k += 1
+        found = False
+        best2 = bs = bd = bfx = bfy = 0.0
+        walked = 0.0
+        last = k - 2
+        for q in range(k - 1):
+            nx, ny = tx[q], ty[q]
+            bx, by = tx[q + 1] - nx, ty[q + 1] - ny
+            seg2 = bx * bx + by * by
+            if seg2 == 0.0:
+                continue
+            seg = math.sqrt(seg2)
+            t = ((px - nx) * bx + (py - ny) * by) / seg2
+            off = (q == 0 and t < 0.0) or (q == last and t > 1.0)
+            if t < 0.0:
+                t = 0.0
+            elif t > 1.0:
+                t = 1.0
+            ex, ey = px - (nx + t * bx), py - (ny + t * by)
+            dist2 = ex * ex + ey * ey
+            if not found or dist2 < best2:
+                found = True
+                best2 = dist2
+                if off:
+                    bs, bd, bfx, bfy = math.nan, math.nan, 0.0, 0.0
+                else:
+                    fx, fy = -bx / seg, -by / seg
+                    side = ex * fy - ey * fx
+                    bs, bd, bfx, bfy = walked + t * seg, math.copysign(math.sqrt(dist2),
+                                                                         side), fx, fy
+            walked += seg
+        if not found or bs != bs:
+            out[b, 0] = out[b, 1] = out[b, 2] = math.nan
+            continue
+        h = math.atan2(bfx, bfy) * _RAD2DEG
+        # h % 360.0 (float_rem: fmod, then + 360 when negative; +0.0 for a zero); fmod(h,
+        # 360) is h itself, since |h| <= 180
+        out[b, 0], out[b, 1], out[b, 2] = bs, bd, h + 360.0 if h < 0.0 else h + 0.0
 
 
 _T27 = 134217729.0  # 2 ** 27 + 1, Veltkamp's constant

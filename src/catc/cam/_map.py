@@ -62,6 +62,7 @@ class ContextAwareMap:
             from catc.cam._histories import PathHistories
 
             histories = PathHistories(self.config.ph_tolerance_m)
+        self._histories = histories
         self._table = TrackTable(self.config, self.counters, self._new_predictor,
                                  histories.row if histories is not None else None)
 
@@ -204,7 +205,14 @@ class ContextAwareMap:
         cand = (zone.ahead & (zone.direction != 1) & (zone.s <= c.trail_range_m)).nonzero()[0]
         used = np.zeros(len(tracks), dtype=bool)
         found = []
-        for i in cand.tolist():
+        if self._histories is not None:  # the rows' trails in one compiled loop
+            idx = cand.tolist()
+            heads = np.array([(tracks[i].est_x, tracks[i].est_y) for i in idx])
+            offs = self._histories.trail_offsets([tracks[i].history.slot for i in idx],
+                                                 heads.reshape(-1, 2), (host.x, host.y))
+            found = [(i, off) for i, off in zip(idx, offs.tolist(), strict=True)
+                     if off[0] == off[0]]
+        for i in cand.tolist() if self._histories is None else ():
             tr = tracks[i]
             trail = ((float(tr.est_x), float(tr.est_y)), *tr.history.point_tuple())
             off = trail_offset(trail, (host.x, host.y))

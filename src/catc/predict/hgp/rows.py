@@ -8,9 +8,10 @@ import math
 
 from catc.predict.kalman import compiled_kf_step
 
-__all__ = ["apply", "kernel"]
+__all__ = ["apply", "kernel", "positions", "positions_kernel"]
 
 _KERNEL = None
+_POSITIONS = None
 
 
 def kernel():
@@ -26,6 +27,58 @@ def kernel():
 
 
 _KF_STEP = None
+
+
+def positions_kernel():
+    """:func:`positions` compiled (numba, cached per machine), when first asked for."""
+    global _POSITIONS
+    if _POSITIONS is None:
+        from numba import njit
+
+        _POSITIONS = njit(cache=True, error_model="numpy")(positions)
+    return _POSITIONS
+
+
+_DEG2RAD = math.pi / 180.0  # math.radians multiplies by this same constant
+
+
+def positions(slots, t, last, kf_t, kf_h, kf_e, kf_n, kf_a, out):  # pragma: no cover
+    """The kinematic branches' positions at ``t[k]`` of row ``slots[k]``, ``out[k]`` =
+    (x, y) of ``ConstantAccelerationPredictor.position`` then of
+    ``KalmanPredictor.position``: the same operations in the same order (``sin`` and
+    ``cos`` the C library's in both).  Every row has an observation and ``t[k]`` is not
+    before it (the caller checks)."""
+    for k in range(slots.shape[0]):
+        s = slots[k]
+        tk = t[k]
+        # ConstantAccelerationPredictor.position
+        dt = tk - last[s, 0]
+        if dt < 0.0:
+            dt = 0.0  # elapsed(): within its tolerance
+        sp, a = last[s, 3], last[s, 5]
+        d = sp * sp / (-2.0 * a) if a < 0.0 and dt >= sp / -a else sp * dt + 0.5 * a * dt * dt
+        h = last[s, 4] * _DEG2RAD
+        out[k, 0] = last[s, 1] + d * math.sin(h)
+        out[k, 1] = last[s, 2] + d * math.cos(h)
+        # KalmanPredictor.position, with stop_point
+        dt = tk - kf_t[s]
+        if dt < 0.0:
+            dt = 0.0
+        pe, ve, ae = kf_e[s, 0], kf_e[s, 1], kf_e[s, 2]
+        pn, vn, an = kf_n[s, 0], kf_n[s, 1], kf_n[s, 2]
+        hd = kf_h[s] * _DEG2RAD
+        se, ce = math.sin(hd), math.cos(hd)
+        u0 = ve * se + vn * ce
+        a_h = ae * se + an * ce
+        if a_h < 0.0 and dt * -a_h >= u0:
+            ts = (0.0 if u0 < 0.0 else u0) / -a_h  # max(u0, 0.0)
+            hs = 0.5 * ts * ts
+            out[k, 2] = pe + ts * ve + hs * ae + kf_a[s, 0]
+            out[k, 3] = pn + ts * vn + hs * an + kf_a[s, 1]
+        else:
+            h2 = 0.5 * dt * dt
+            out[k, 2] = pe + dt * ve + h2 * ae + kf_a[s, 0]
+            out[k, 3] = pn + dt * vn + h2 * an + kf_a[s, 1]
 
 
 def apply(slots, obs, buf, lo, hi, turn, run, since, sel, last, kf_t, kf_h, kf_e, kf_n,

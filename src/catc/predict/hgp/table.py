@@ -47,7 +47,7 @@ from catc.predict.hgp.branches import Branches
 from catc.predict.hgp.config import HgpConfig
 from catc.predict.hgp.gpstack import forecast_grid, forecast_steps, posterior_stack, stack
 from catc.predict.hgp.predictor import HgpPredictor
-from catc.predict.hgp.rows import kernel
+from catc.predict.hgp.rows import kernel, positions_kernel
 from catc.predict.hgp.selection import (
     SELECT_CHUNK,
     bank_indices,
@@ -69,6 +69,8 @@ __all__ = ["HgpRow", "HgpTable", "supported", "warm_up"]
 
 #: Columns of the rows' last observation (:class:`Observation`'s fields).
 _T, _X, _Y, _SPEED, _HEADING, _ACCEL, _YAW = range(7)
+#: Where :func:`~.rows.positions` puts each branch's x (then y).
+_BRANCH_XY = {"ca": 0, "kf": 2}
 
 
 def supported(c: HgpConfig) -> bool:
@@ -181,6 +183,7 @@ class HgpTable:
         self._kf = KalmanPredictor()  # the branches as the objects make them (KINEMATIC)
         self._ca = ConstantAccelerationPredictor()
         self._kernel = kernel()
+        self._positions = positions_kernel()
         self._cap = 0
         self._free: list[int] = []
         self._dead: list[int] = []
@@ -277,7 +280,7 @@ class HgpTable:
         c = self.config
         edges, horizon, long_gap = c.branch_edges, c.horizon_s, c.reselect_gap_s + 1e-6
         last_t = self.last[:, _T]
-        slots, rows, keep = [], [], []
+        slots, rows, keep, scored = [], [], [], []
         for s, obs in items:
             check_observation(obs)  # what the branches' updates check first
             prev_t = float(last_t[s])
@@ -287,13 +290,15 @@ class HgpTable:
                 gap = obs.t - prev_t
                 f = self.forecast[s]
                 if gap > DT + 1e-6 and f is not None and covers(f, gap, horizon):
-                    self._score(s, obs, bisect.bisect_left(edges, gap), read_xy(f, gap))
+                    scored.append((s, obs, bisect.bisect_left(edges, gap), read_xy(f, gap)))
                 if gap > long_gap and still_fits(c, f, gap, obs.x, obs.y):
                     keep.append(s)
             slots.append(s)
             rows.append(obs)
         if not slots:
             return
+        if scored:
+            self._score(scored)
         kept = self.sel[keep]  # the selections that survive their gap (the kernel drops them)
         kf = self._kf
         self._kernel(np.array(slots, dtype=np.int64), np.array(rows, dtype=np.float64),
@@ -308,18 +313,31 @@ class HgpTable:
             forecast[s] = None
         self.f_end[slots] = math.nan
 
-    def _score(self, s: int, obs: Observation, g: int, gp_xy: tuple[float, float]) -> None:
-        """``Branches.score_gap``'s scores at ``obs`` (a gap of class ``g`` ends there),
-        the GP's position ``gp_xy`` read from its forecast."""
-        gx, gy = gp_xy
-        x, y = obs.x, obs.y
-        errs = [(gx - x) ** 2 + (gy - y) ** 2]
-        for name in self.config.branches:
-            px, py = self._branch(s, name).position(obs.t)
-            errs.append((px - x) ** 2 + (py - y) ** 2)
-        scores = self._scores[s]
-        Branches.add(scores, g, errs)  # type: ignore[arg-type]  # its attributes
-        self.choice[s, g] = scores.choice[g]
+    def _score(self, scored: list[tuple[int, Observation, int, tuple[float, float]]]
+               ) -> None:
+        """``Branches.score_gap``'s scores at each ``(row, obs, gap class, the GP's
+        position read from its forecast)``: the branches' positions at the BSMs that end
+        the gaps in one compiled loop (:func:`~.rows.positions`)."""
+        names = self.config.branches
+        if names:
+            slots = np.array([item[0] for item in scored], dtype=np.int64)
+            if np.isnan(self.kf_t[slots]).any():  # never: the positions' LookupError
+                for item in scored:
+                    self._branch(item[0], "kf").position(item[1].t)
+            xy = np.empty((len(scored), 4))
+            self._positions(slots, np.array([item[1].t for item in scored]), self.last,
+                            self.kf_t, self.kf_h, self.kf_e, self.kf_n, self.kf_a, xy)
+            cols = [_BRANCH_XY[name] for name in names]
+            pos = xy.tolist()
+        for k, (s, obs, g, (gx, gy)) in enumerate(scored):
+            x, y = obs.x, obs.y
+            errs = [(gx - x) ** 2 + (gy - y) ** 2]
+            if names:
+                here = pos[k]
+                errs.extend((here[j] - x) ** 2 + (here[j + 1] - y) ** 2 for j in cols)
+            scores = self._scores[s]
+            Branches.add(scores, g, errs)  # type: ignore[arg-type]  # its attributes
+            self.choice[s, g] = scores.choice[g]
 
     def _branch(self, s: int, name: str) -> KalmanPredictor | ConstantAccelerationPredictor:
         """The kinematic branch ``name`` of row ``s``: an object of its class, holding the

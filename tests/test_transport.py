@@ -218,6 +218,48 @@ def test_udp_send_to_a_closed_port_is_counted_not_raised(host):
     run(main())
 
 
+def test_udp_burst_send_many_arrives_in_order_with_a_stamp_each():
+    """send_many (the RVE's 1,000 frames due at one instant): every frame arrives, in
+    order, and each has the stamp taken after its send."""
+    async def main():
+        async with await open_receiver("udp", listen=("127.0.0.1", 0),
+                                       host_listen=("127.0.0.1", 0)) as rx:
+            if rx.stats["rcvbuf"] < 4 * 2**20:
+                pytest.skip(f"kernel granted a {rx.stats['rcvbuf']}-octet receive buffer")
+            burst = [i.to_bytes(2, "big") * 120 for i in range(1000)]
+            async with await open_sender("udp", to=rx.addresses["rv"],
+                                         host_to=rx.addresses["host"]) as tx:
+                ticks = iter(range(10_000))
+                stamps = await tx.send_many(burst, lambda: next(ticks))
+                assert stamps == list(range(1000))
+                assert tx.stats["frames"] == tx.stats["rv"] == 1000
+                assert tx.stats["bytes"] == 240_000 and tx.stats["errors"] == 0
+                got = await collect(rx, 1000)
+            assert [r.data for r in got] == burst
+
+    run(main())
+
+
+def test_udp_send_many_to_a_closed_port_is_counted_not_raised():
+    """A refused burst (ICMP port unreachable on the connected socket): counted, a stamp
+    per frame, nothing raised, and the sender still sends."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        closed = probe.getsockname()[:2]
+
+    async def main():
+        tx = await open_sender("udp", to=closed, host_to=closed)
+        for _ in range(3):
+            stamps = await tx.send_many([b"bsm"] * 50, lambda: 0)
+            assert len(stamps) == 50
+            await asyncio.sleep(0.01)
+        assert tx.stats["frames"] == 150
+        assert tx.stats["econnrefused"] >= 1 and tx.stats["errors"] >= 1
+        await tx.aclose()
+
+    run(main())
+
+
 # --- CAN: virtual bus in this process, SocketCAN where vcan can be created -------------
 
 def _ip(*args: str) -> subprocess.CompletedProcess:

@@ -162,6 +162,7 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
         cap.sources(src)
     counts = {"sent": 0, "dropped": 0, "host": 0}
     times = events["time"].tolist()
+    hosts = events["host"].tolist()  # (a record's field costs ~0.3 us: 1,000 per burst)
     try:
         i, n, tick = 0, len(events), -1
         while i < n and not stop.is_set():
@@ -197,8 +198,8 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
             sent_at: list = [None] * len(frames)
             extra_at: list = []
             burst: list[int] = []  # the RV frames due before the next host frame
-            for k, (ev, frame) in enumerate(zip(batch, frames, strict=True)):
-                if not ev["host"]:
+            for k, (host, frame) in enumerate(zip(hosts[i:j], frames, strict=True)):
+                if not host:
                     if frame is not None:
                         burst.append(k)
                     continue

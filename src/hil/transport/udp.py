@@ -120,10 +120,12 @@ class UdpSender(Sender):
         await self._send("host", frame)
 
     async def send_many(self, frames: Sequence[bytes], stamp: Callable[[], T]) -> list[T]:
-        """The RV frames of a burst straight onto the socket's datagram transport, with
-        no await between them (asyncio-dgram's send awaits its drained event after each,
-        7 us a frame against 3.5: 1,000 RVs due at one instant); then its drained event
-        once, as its send would."""
+        """The RV frames of a burst straight onto the connected socket, with no await
+        between them (asyncio-dgram's send awaits its drained event after each, 7 us a
+        frame against 3.5: 1,000 RVs due at one instant), while the transport has nothing
+        buffered: what its ``sendto`` does first, without its checks (3.9 us a frame on
+        loopback against 4.7).  A full socket buffer hands the rest to the transport,
+        which queues them; then its drained event once, as its send would."""
         if self._closed:
             raise TransportError("udp sender is closed")
         stream = self._streams["rv"]
@@ -133,7 +135,22 @@ class UdpSender(Sender):
             return await super().send_many(frames, stamp)
         self._collect(stream)
         out = []
-        for frame in frames:
+        raw = getattr(transport, "_sock", None)
+        k = 0
+        if raw is not None and not getattr(transport, "_buffer", True):
+            send = raw.send
+            try:
+                for frame in frames:
+                    send(frame)
+                    out.append(stamp())
+                    k += 1
+            except (BlockingIOError, InterruptedError):
+                pass  # the transport queues this one and the rest
+            except OSError as exc:  # as the transport would report it: dropped, counted
+                _count_error(self.stats, exc)
+                out.append(stamp())
+                k += 1
+        for frame in frames[k:]:
             transport.sendto(frame)  # an OSError comes back through the stream: _collect
             out.append(stamp())
         self._collect(stream)

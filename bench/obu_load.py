@@ -32,10 +32,15 @@ CPU as a ratio to the ``off`` row of its cell.  ``--verify`` alone means ``on``.
 (0: the RVE signs in its sending loop; N: N worker processes sign ahead of the schedule,
 :mod:`rve.signahead`); ``RVE CPU %`` is then the sending process's and its workers'
 (``main+workers``), and the row gives the batches the loop had to wait for.
+``--sign-lookahead S`` is ``rve run --sign-lookahead``: with S at least ``--seconds``, the
+workers sign the whole run before the RVE's clock starts, and only the sending loop runs
+beside the OBU (an RVE is a test instrument: its signing need not share the OBU's cores
+while the OBU is measured).
 
     python bench/obu_load.py [--json] [--rvs 100,250,500] [--per 0,50] [--predictors hgp,ca]
                              [--seconds 15] [--capture | --keep DIR]
                              [--verify [off,on,on-demand,signed|both]] [--sign-workers 0,2]
+                             [--sign-lookahead S]
 
 Target (issue 6): 500 RVs with hgp at PER 50 %: no socket loss and tick p99 <= 50 ms.
 With --verify the same target holds for the verifying OBU.
@@ -131,7 +136,7 @@ class WebClients:
 def measure(n: int, per: float, predictor: str, seconds: float, capture: bool,
             verify: str = "off", web_clients: int | None = None,
             keep: Path | None = None, sign_workers: int | None = None,
-            verify_workers: int | None = None) -> dict:
+            verify_workers: int | None = None, sign_lookahead: float | None = None) -> dict:
     ports = free_ports()
     web_port = None
     if web_clients is not None:
@@ -171,6 +176,8 @@ def measure(n: int, per: float, predictor: str, seconds: float, capture: bool,
             args.sign = str(pki_dir) if pki_dir is not None else None
             if sign_workers is not None:
                 args.sign_workers = sign_workers
+            if sign_lookahead is not None:
+                args.sign_lookahead = sign_lookahead
             the_plan = plan(ring_table(n, seconds), ChannelConfig(per=per / 100.0), 1)
             late: list[float] = []
             cpu0, wall0 = cpu_seconds(obu.pid), time.monotonic()
@@ -217,6 +224,7 @@ def measure(n: int, per: float, predictor: str, seconds: float, capture: bool,
             "signed_per_s": round(counts.get("signed", 0) / wall, 1),
             "rve_cpu_percent": round(100.0 * (rve_cpu1 - rve_cpu0) / wall, 1),
             "sign_workers": (args.sign_workers if pki_dir is not None else None),
+            "sign_lookahead_s": (args.sign_lookahead if pki_dir is not None else None),
             "rve_workers_cpu_percent": round(100.0 * workers_cpu / wall, 1),
             **{k: counts[k] for k in ("sign_ahead_batches", "sign_ahead_waits",
                                       "sign_ahead_wait_ms_max") if k in counts},
@@ -306,6 +314,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sign-workers", metavar="N,...",
                     help="rve run --sign-workers for the signed modes, one row per value "
                          "(default: rve run's own)")
+    ap.add_argument("--sign-lookahead", type=float, metavar="S",
+                    help="rve run --sign-lookahead for the signed modes; at least --seconds: "
+                         "the whole run is signed before the RVE's clock starts")
     args = ap.parse_args(argv)
     workers = ([int(v) for v in args.sign_workers.split(",")] if args.sign_workers
                else [None])
@@ -321,7 +332,8 @@ def main(argv: list[str] | None = None) -> int:
                         for vw in (vworkers if mode == "on-demand" else [None]):
                             for k in webs:
                                 rows.append(measure(n, per, p, args.seconds, args.capture,
-                                                    mode, k, args.keep, w, vw))
+                                                    mode, k, args.keep, w, vw,
+                                                    args.sign_lookahead))
                     if not args.json:
                         print(f"  done {n} RVs PER {per:g} % {p} verify {mode}",
                               file=sys.stderr)

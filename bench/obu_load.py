@@ -27,6 +27,9 @@ before security existed); ``signed`` sends the signed frames to an OBU that does
 (the cost of the envelope alone).  A list (``--verify off,on``, or ``both``) runs every mode
 for each cell, one after the other in the same run, and prints each mode's tick p99 and OBU
 CPU as a ratio to the ``off`` row of its cell.  ``--verify`` alone means ``on``.
+CPU % and signatures/s are over the run: the RVE's preparation before its clock starts
+(``sign_ahead_lead_s``, its CPU ``sign_ahead_prepare_cpu_s``) is left out; the signing
+workers' CPU is over everything, the time they signed before the clock included.
 
 ``--sign-workers 0,2`` (signed modes): one row per value of ``rve run --sign-workers``
 (0: the RVE signs in its sending loop; N: N worker processes sign ahead of the schedule,
@@ -203,6 +206,9 @@ def measure(n: int, per: float, predictor: str, seconds: float, capture: bool,
     sent = counts["sent"] + counts["host"]
     got = c.get("transport_frames", 0)
     wall = wall1 - wall0
+    # the RVE's signing before its clock started (--sign-lookahead): not the run's
+    lead, prep = counts.get("sign_ahead_lead_s", 0.0), counts.get("sign_ahead_prepare_cpu_s", 0.0)
+    run_wall = wall - lead
     late_ms = np.array(late) * 1e3 if late else np.zeros(1)
     return {"rvs": n, "per": per, "predictor": predictor, "verify": verify,
             "verify_workers": verify_workers,
@@ -214,15 +220,16 @@ def measure(n: int, per: float, predictor: str, seconds: float, capture: bool,
             "ticks": c.get("ticks", 0),
             # arrival to decision: the RV messages', and the host frames' (a tick's own)
             "lag_ms_p99": c.get("lag_ms_p99"), "host_lag_ms_p99": c.get("host_lag_ms_p99"),
-            "cpu_percent": round(100.0 * (cpu1 - cpu0) / wall, 1),
+            "cpu_percent": round(100.0 * (cpu1 - cpu0) / run_wall, 1),
             "verify_counters": {k: v for k, v in sorted(c.items())
                                 if k.startswith("verify_")},
             "ondemand_counters": {k: v for k, v in sorted(c.items())
                                   if k.startswith("ondemand_")},
             "signed": counts.get("signed", 0),
             "signed_with_certificate": counts.get("with_certificate", 0),
-            "signed_per_s": round(counts.get("signed", 0) / wall, 1),
-            "rve_cpu_percent": round(100.0 * (rve_cpu1 - rve_cpu0) / wall, 1),
+            "signed_per_s": round(counts.get("signed", 0) / run_wall, 1),
+            "rve_cpu_percent": round(100.0 * (rve_cpu1 - rve_cpu0 - prep) / run_wall, 1),
+            "sign_ahead_lead_s": lead,
             "sign_workers": (args.sign_workers if pki_dir is not None else None),
             "sign_lookahead_s": (args.sign_lookahead if pki_dir is not None else None),
             "rve_workers_cpu_percent": round(100.0 * workers_cpu / wall, 1),

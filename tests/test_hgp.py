@@ -218,23 +218,32 @@ def test_regular_grid_selection_cache_equals_the_direct_likelihood():
                        atol=1e-8)
 
 
-def test_predictor_uses_the_cache_only_on_regular_full_windows():
+@pytest.mark.parametrize("samples", [30, 15, 4])
+def test_predictor_uses_the_cache_only_on_regular_windows(samples):
+    """A window of samples DT apart uses the regular grid's cache of its length (a full
+    one, or a vehicle heard for fewer than tw samples): the same forecast, to round-off,
+    as the direct path; a lost message means no cache."""
     p = HgpPredictor(BANK)
     obs = drive(40, v0=12.0, a=0.5, yaw=3.0)
-    for o in obs[:30]:
+    for o in obs[:samples]:
         p.update(o)
-    assert p._state.regular_cache(np.arange(-29, 1) * 0.1) is not None
-    assert p._state.regular_cache(np.arange(-28, 1) * 0.1) is None  # not a full window
+    full = p._state.regular_cache(np.arange(-29, 1) * 0.1)
+    short = p._state.regular_cache(np.arange(-28, 1) * 0.1)
+    assert full is not None and short is not None and short is not full
+    assert short[0].Kinv.shape[1] == 30  # 29 values and the slope
+    assert p._state.regular_cache(np.array([0.0])) is None
     tau = np.arange(-29, 1) * 0.1
     tau[3] += 0.05
     assert p._state.regular_cache(tau) is None  # a lost message
-    a = p.predict(3.5)
+    t = obs[samples - 1].t + 1.5
+    a = p.predict(t)
     q = HgpPredictor(BANK, HgpConfig(select_with_slopes=True))
     q._state.regular_cache = lambda tau: None  # force the direct path
-    for o in obs[:30]:
+    for o in obs[:samples]:
         q.update(o)
-    b = q.predict(3.5)
+    b = q.predict(t)
     assert (a.x, a.y) == (pytest.approx(b.x, abs=1e-9), pytest.approx(b.y, abs=1e-9))
+    assert q._state.selection.index == p._state.selection.index
 
 
 def test_regular_cache_belongs_to_its_bank():

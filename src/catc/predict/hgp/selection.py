@@ -111,12 +111,22 @@ def bank_indices(rels: np.ndarray, shared: BankCache) -> tuple[list[int], list[i
 
 
 def _select_regular(items: list[tuple[WindowState, np.ndarray, tuple]]) -> None:
-    """:func:`own_selection` of full regular windows, ``(state, prepared window, cache)``
-    (one bank and configuration: one cache serves all), by :func:`regular_indices`."""
+    """:func:`own_selection` of regular windows of one length, ``(state, prepared window,
+    cache)`` (one bank and configuration: one cache serves all), by
+    :func:`regular_indices`."""
     shared, cache = items[0][0].shared, items[0][2]
     best_s, best_h = regular_indices(stack([rel for _, rel, _ in items]), cache)
     for (s, _, _), i, j in zip(items, best_s, best_h, strict=True):
         s.selection = Selection(s.bank.speed[i], s.bank.heading[j], (i, j), shared.pair(i, j))
+
+
+def _by_length(items: list) -> list[list]:
+    """``items`` (``(state, prepared window, ...)``) grouped by window length, in the
+    order of each length's first item."""
+    groups: dict[int, list] = {}
+    for item in items:
+        groups.setdefault(item[1].shape[1], []).append(item)
+    return list(groups.values())
 
 
 #: Windows per stacked call: bounds the work arrays (a selection's exponentials are
@@ -144,15 +154,13 @@ def select_batch(states: list[WindowState], rels: list[np.ndarray],
             todo.append((s, rel))
         else:
             s.selection = sel
-    if len(regular) == 1:
-        s, rel, cache = regular[0]
-        s.selection = own_selection(s, rel, cache)
-    elif regular:
-        _select_regular(regular)
-    by_len: dict[int, list[tuple[WindowState, np.ndarray]]] = {}
-    for item in todo:
-        by_len.setdefault(item[1].shape[1], []).append(item)
-    for items in by_len.values():
+    for same in _by_length(regular):  # one cache per window length
+        if len(same) == 1:
+            s, rel, cache = same[0]
+            s.selection = own_selection(s, rel, cache)
+        else:
+            _select_regular(same)
+    for items in _by_length(todo):
         shared = items[0][0].shared
         m = shared.m
         for lo in range(0, len(items), SELECT_CHUNK):

@@ -157,12 +157,13 @@ def prepare_many(states: list[WindowState]) -> list[tuple]:
 def _regular_posteriors(states: list[WindowState], prepared: list[tuple],
                         members: list[int], rows: list[int], count: int, mean: np.ndarray,
                         var: np.ndarray) -> None:
-    """Into ``mean[rows]`` and ``var[rows]``: the posteriors of full regular windows (rows
+    """Into ``mean[rows]`` and ``var[rows]``: the posteriors of regular windows (rows
     of ``members``, indices into ``states`` and ``prepared``) from the cached weights of
     their models (:meth:`WindowState.regular_posteriors`), one matrix product per model in
     use instead of two dot products per window."""
+    first = members[rows[0]]
     regular_posteriors(
-        states[members[rows[0]]].regular_posteriors(count),
+        states[first].regular_posteriors(count, prepared[first][0].shape[1] - 1),
         np.array([states[members[r]].selection.index for r in rows], dtype=np.intp),
         stack([prepared[members[r]][0] for r in rows]), rows, mean, var)
 

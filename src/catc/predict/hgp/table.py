@@ -45,7 +45,7 @@ from catc.predict.forecast import (
 )
 from catc.predict.hgp.branches import Branches
 from catc.predict.hgp.config import HgpConfig
-from catc.predict.hgp.gpstack import forecast_grid, forecast_steps, posterior_stack, stack
+from catc.predict.hgp.gpstack import forecast_grid, forecast_steps, posterior_stack
 from catc.predict.hgp.predictor import HgpPredictor
 from catc.predict.hgp.rows import kernel, positions_kernel
 from catc.predict.hgp.selection import (
@@ -56,7 +56,7 @@ from catc.predict.hgp.selection import (
     still_fits,
 )
 from catc.predict.hgp.stacked import POSTERIOR_CHUNK, finish_stack, regular_posteriors
-from catc.predict.hgp.window import bank_cache, window_rel
+from catc.predict.hgp.window import bank_cache
 from catc.predict.kalman import KalmanPredictor
 from catc.predict.kinematic import (
     TIME_TOLERANCE,
@@ -108,28 +108,23 @@ class _View:
 
 
 class _Prepared:
-    """Windows prepared for a forecast (``stacked.prepare_many``): the full ones as rows
-    of one array (``full[at[i]]``), the others one by one (``rels[i]``), and which are
-    full and regular."""
+    """Windows prepared for a forecast (``stacked.prepare_many``): those of one length as
+    rows of one array (window i is ``arrays[which[i]][at[i]]``), and which are regular."""
 
-    __slots__ = ("at", "full", "regular", "rels")
+    __slots__ = ("arrays", "at", "regular", "which")
 
     def __init__(self, n: int) -> None:
-        self.full: np.ndarray | None = None
-        self.at = np.full(n, -1, dtype=np.int64)
-        self.rels: list[np.ndarray | None] = [None] * n
+        self.arrays: list[np.ndarray] = []
+        self.which = np.zeros(n, dtype=np.int64)
+        self.at = np.zeros(n, dtype=np.int64)
         self.regular = np.zeros(n, dtype=bool)
 
     def rel(self, i: int) -> np.ndarray:
-        k = self.at[i]
-        return self.full[k] if k >= 0 else self.rels[i]
+        return self.arrays[self.which[i]][self.at[i]]
 
     def stack(self, items: np.ndarray) -> np.ndarray:
         """The windows ``items`` (one length) stacked, (len(items), 3, n + 1)."""
-        at = self.at[items]
-        if (at >= 0).all():
-            return self.full[at]
-        return stack([self.rel(int(i)) for i in items])
+        return self.arrays[self.which[items[0]]][self.at[items]]
 
 
 class HgpRow:
@@ -382,30 +377,30 @@ class HgpTable:
 
     def _prepared(self, slots: np.ndarray) -> _Prepared:
         """``stacked.prepare_many`` of the rows ``slots``: each window relative to its
-        last sample, and whether it is a full regular window (the regular-grid cache's)."""
-        n = self.config.tw
+        last sample, and whether it is regular (``WindowState.cache_for``: samples DT
+        apart, the regular-grid cache of its length), the windows of each length
+        gathered and subtracted at once."""
         lo, hi, last = self.lo[slots], self.hi[slots], self.last
         out = _Prepared(len(slots))
-        full = np.flatnonzero(hi - lo == n)
-        if len(full):  # all full windows at once (one gather, one subtraction)
-            fs = slots[full]
-            width = self.buf.shape[2]
+        lengths = hi - lo
+        width = self.buf.shape[2]
+        for n in np.unique(lengths).tolist():
+            same = np.flatnonzero(lengths == n)
+            fs = slots[same]
             idx = ((fs * (5 * width))[:, None, None] + (np.arange(3) * width)[None, :, None]
-                   + (lo[full][:, None] + np.arange(n))[:, None, :])
+                   + (lo[same][:, None] + np.arange(n))[:, None, :])
             win = self.buf.reshape(-1).take(idx)
-            rel = np.empty((len(full), 3, n + 1))
+            rel = np.empty((len(same), 3, n + 1))
             np.subtract(win, win[:, :, -1:], out=rel[:, :, :n])
             rel[:, 0, n] = 0.0
             rel[:, 1, n] = last[fs, _ACCEL]
             rel[:, 2, n] = [math.radians(v) for v in last[fs, _YAW].tolist()]
-            steps = np.diff(rel[:, 0, :n], axis=1)
-            steps -= DT
-            out.regular[full] = (np.abs(steps).max(axis=1) <= 1e-6) & (self.run[fs] >= n)
-            out.full, out.at[full] = rel, np.arange(len(full))
-        for i in np.flatnonzero(hi - lo != n).tolist():  # WindowState.prepare
-            s = int(slots[i])
-            out.rels[i] = window_rel(self.buf[s, :, lo[i]:hi[i]], float(last[s, _ACCEL]),
-                                     float(last[s, _YAW]), True)
+            if n >= 2:
+                steps = np.diff(rel[:, 0, :n], axis=1)
+                steps -= DT
+                out.regular[same] = (np.abs(steps).max(axis=1) <= 1e-6) & (self.run[fs] >= n)
+            out.which[same], out.at[same] = len(out.arrays), np.arange(len(same))
+            out.arrays.append(rel)
         return out
 
     def _select(self, slots: np.ndarray, prep: _Prepared, items: np.ndarray) -> None:
@@ -413,23 +408,28 @@ class HgpTable:
         rows = slots[items]
         self.n_selections[rows] += 1
         self.since[rows] = 0
-        regular = items[prep.regular[items]]
-        if len(regular):
-            cache = self.shared.regular_bank(self.bank, self.config)
-            if len(regular) == 1:
-                i = int(regular[0])
+        for same in self._by_length(items[prep.regular[items]], prep).values():
+            cache = self.shared.regular_bank(self.bank, self.config,
+                                             prep.rel(same[0]).shape[1] - 1)
+            if len(same) == 1:
+                i = same[0]
                 self.sel[slots[i]] = regular_index(prep.rel(i), cache)
             else:
-                self.sel[slots[regular]] = np.array(
-                    regular_indices(prep.stack(regular), cache)).T
-        by_len: dict[int, list[int]] = {}
-        for i in items[~prep.regular[items]].tolist():
-            by_len.setdefault(prep.rel(i).shape[1], []).append(i)
-        for todo in by_len.values():
+                self.sel[slots[same]] = np.array(
+                    regular_indices(prep.stack(np.array(same)), cache)).T
+        for todo in self._by_length(items[~prep.regular[items]], prep).values():
             for lo in range(0, len(todo), SELECT_CHUNK):
                 chunk = np.array(todo[lo:lo + SELECT_CHUNK])
                 self.sel[slots[chunk]] = np.array(
                     bank_indices(prep.stack(chunk), self.shared)).T
+
+    @staticmethod
+    def _by_length(items: np.ndarray, prep: _Prepared) -> dict[int, list[int]]:
+        """``items`` grouped by window length, in the order of each length's first."""
+        groups: dict[int, list[int]] = {}
+        for i in items.tolist():
+            groups.setdefault(prep.rel(i).shape[1], []).append(i)
+        return groups
 
     def _forecasts(self, slots: np.ndarray, counts: np.ndarray) -> None:
         """``stacked.forecast_batch`` of the rows ``slots``, ``counts[i]`` points each; the
@@ -461,7 +461,8 @@ class HgpTable:
                 var = np.empty((len(members), 2, count))
                 reg = np.flatnonzero(regular)
                 if len(reg):  # cached weights: one matrix product per bank model in use
-                    regular_posteriors(self.shared.regular_posteriors(self.bank, c, count),
+                    n = prep.rel(int(members[reg[0]])).shape[1] - 1
+                    regular_posteriors(self.shared.regular_posteriors(self.bank, c, count, n),
                                        sel[reg].astype(np.intp),
                                        prep.stack(members[reg]), reg.tolist(), mean, var)
                 for lo in range(0, len(direct), POSTERIOR_CHUNK):

@@ -4,8 +4,9 @@ the online bank and the caches shared by all predictors on one bank
 (:class:`WindowState`), the explicit state the fast path works on.
 
 The window is the last ``tw`` received samples (the paper's TW = 30), headings unwrapped
-one sample at a time; a window of ``tw`` samples exactly DT apart (no loss) uses the
-selection and posterior caches of the regular grid, built once per bank.
+one sample at a time; a window of samples exactly DT apart (no loss: a full one, or a
+vehicle heard for less than ``tw`` samples) uses the selection and posterior caches of
+the regular grid of its length, built once per bank.
 """
 
 from __future__ import annotations
@@ -76,26 +77,31 @@ class BankCache:
         self.regular: dict[int, tuple[RegularSlopeBank, RegularSlopeBank]] = {}
         self.posterior: dict[tuple[int, int], tuple[RegularSlopePosterior, ...]] = {}
 
-    def regular_bank(self, bank: KernelBank, c: HgpConfig) -> tuple[RegularSlopeBank, ...]:
-        """The selection cache of a full window of ``c.tw`` samples exactly DT apart (no
-        loss) for ``bank``, this cache's bank: built once, shared by all predictors."""
-        cache = self.regular.get(c.tw)
+    def regular_bank(self, bank: KernelBank, c: HgpConfig, n: int | None = None
+                     ) -> tuple[RegularSlopeBank, ...]:
+        """The selection cache of a window of ``n`` samples (default ``c.tw``, a full
+        one) exactly DT apart (no loss) for ``bank``, this cache's bank: built once per
+        length, shared by all predictors."""
+        n = c.tw if n is None else n
+        cache = self.regular.get(n)
         if cache is None:
-            cache = self.regular[c.tw] = (
-                RegularSlopeBank(bank.speed, c.tw, c.noise_speed, c.noise_accel),
-                RegularSlopeBank(bank.heading, c.tw, c.noise_heading, c.noise_yaw))
+            cache = self.regular[n] = (
+                RegularSlopeBank(bank.speed, n, c.noise_speed, c.noise_accel),
+                RegularSlopeBank(bank.heading, n, c.noise_heading, c.noise_yaw))
         return cache
 
-    def regular_posteriors(self, bank: KernelBank, c: HgpConfig, count: int
-                           ) -> tuple[RegularSlopePosterior, ...]:
+    def regular_posteriors(self, bank: KernelBank, c: HgpConfig, count: int,
+                           n: int | None = None) -> tuple[RegularSlopePosterior, ...]:
         """The speed and heading :class:`RegularSlopePosterior` of every model of ``bank``
-        (this cache's), for a full regular window and a forecast of ``count`` points."""
-        post = self.posterior.get((c.tw, count))
+        (this cache's), for a regular window of ``n`` samples (default ``c.tw``) and a
+        forecast of ``count`` points."""
+        n = c.tw if n is None else n
+        post = self.posterior.get((n, count))
         if post is None:
             grid = forecast_grid(count)[0]
-            post = self.posterior[c.tw, count] = (
-                RegularSlopePosterior(bank.speed, c.tw, c.noise_speed, c.noise_accel, grid),
-                RegularSlopePosterior(bank.heading, c.tw, c.noise_heading, c.noise_yaw, grid))
+            post = self.posterior[n, count] = (
+                RegularSlopePosterior(bank.speed, n, c.noise_speed, c.noise_accel, grid),
+                RegularSlopePosterior(bank.heading, n, c.noise_heading, c.noise_yaw, grid))
         return post
 
     def pair(self, i: int, j: int) -> np.ndarray:
@@ -214,22 +220,24 @@ class WindowState:
     def cache_for(self, rel: np.ndarray) -> tuple[RegularSlopeBank, ...] | None:
         """The regular-grid selection cache for the prepared window ``rel``, or None."""
         n = rel.shape[1] - 1
-        regular = self.run >= n == self.config.tw and not self.online_speed
+        regular = self.run >= n and not self.online_speed
         return self.regular_cache(rel[0, :n]) if regular else None
 
     def regular_cache(self, tau: np.ndarray) -> tuple[RegularSlopeBank, ...] | None:
-        """The cached selection for a window of ``tw`` samples at exactly DT apart (no loss),
-        built once per bank and configuration and shared by all predictors."""
-        c = self.config
-        if len(tau) != c.tw or np.max(np.abs(np.diff(tau) - DT)) > 1e-6:
+        """The cached selection for a window of samples at exactly DT apart (no loss) at
+        times ``tau``, one per length, built once per bank and configuration and shared by
+        all predictors; None for other windows (and fewer than two samples)."""
+        if len(tau) < 2 or np.max(np.abs(np.diff(tau) - DT)) > 1e-6:
             return None
-        return self.regular_bank()
+        return self.regular_bank(len(tau))
 
-    def regular_bank(self) -> tuple[RegularSlopeBank, ...]:
-        """:meth:`regular_cache` without the check that the window is regular (the caller
-        made it, e.g. for many windows at once: :func:`~.stacked.prepare_many`)."""
-        return self.shared.regular_bank(self.bank, self.config)
+    def regular_bank(self, n: int | None = None) -> tuple[RegularSlopeBank, ...]:
+        """:meth:`regular_cache` of ``n`` samples (default ``tw``) without the check that
+        the window is regular (the caller made it, e.g. for many windows at once:
+        :func:`~.stacked.prepare_many`)."""
+        return self.shared.regular_bank(self.bank, self.config, n)
 
-    def regular_posteriors(self, count: int) -> tuple[RegularSlopePosterior, ...]:
+    def regular_posteriors(self, count: int, n: int | None = None
+                           ) -> tuple[RegularSlopePosterior, ...]:
         """:meth:`BankCache.regular_posteriors` of this window's bank."""
-        return self.shared.regular_posteriors(self.bank, self.config, count)
+        return self.shared.regular_posteriors(self.bank, self.config, count, n)

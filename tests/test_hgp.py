@@ -347,6 +347,20 @@ def test_running_window_equals_the_observation_window():
             p.predict(1.0)
 
 
+def test_only_windows_of_distinct_grid_steps_get_a_table():
+    """The table of exponentials per DT step needs every time on the grid, one sample per
+    step, ascending; anything else gets an exponential per element."""
+    from catc.predict.hgp.gpstack import on_grid
+
+    ok = np.array([[-0.3, -0.1 + 2e-7, 0.0]])
+    assert on_grid(ok)[1].tolist() == [[3, 1, 0]]
+    assert on_grid(ok)[0].tolist() == [[-0.30000000000000004, -0.1, -0.0]]
+    for bad in ([-0.3, -0.15, 0.0], [-0.1, -0.1 + 5e-7, 0.0], [-0.1, -0.3, 0.0],
+                [-900.0, -0.1, 0.0]):  # off the grid, one step twice, descending, too long
+        tau, steps = on_grid(np.array([bad]))
+        assert steps is None and tau.tolist() == [bad]
+
+
 @pytest.mark.parametrize("aligned", [False, True], ids=["off-grid", "on-grid"])
 def test_stacked_likelihood_and_posterior_equal_the_readable_formulas(aligned):
     """Times anywhere (an exponential per covariance element) and on the 0.1 s grid of

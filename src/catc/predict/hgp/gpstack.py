@@ -99,11 +99,13 @@ _TABLE_MAX = 4
 
 def _grid_steps(tau: np.ndarray) -> np.ndarray | None:
     """The windows' times ``tau`` (B, n, ascending to 0) as whole DT steps back, (B, n)
-    int64, if every time is on the grid (within :data:`GRID_TOL`) and the span is short
-    enough for a table (:data:`_TABLE_MAX`); else None."""
+    int64, if every time is on the grid (within :data:`GRID_TOL`), the steps descend (no
+    two samples in one step) and the span is short enough for a table
+    (:data:`_TABLE_MAX`); else None."""
     steps = np.rint(tau * (-1.0 / DT))
     if (np.abs(steps * DT + tau).max(initial=0.0) > GRID_TOL
-            or steps.max(initial=0.0) >= _TABLE_MAX * tau.shape[1] * (tau.shape[1] + 1) / 2):
+            or steps.max(initial=0.0) >= _TABLE_MAX * tau.shape[1] * (tau.shape[1] + 1) / 2
+            or (steps[:, 1:] >= steps[:, :-1]).any()):
         return None
     return steps.astype(np.int64)
 

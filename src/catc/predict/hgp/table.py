@@ -316,7 +316,7 @@ class HgpTable:
         names = self.config.branches
         if names:
             slots = np.array([item[0] for item in scored], dtype=np.int64)
-            if np.isnan(self.kf_t[slots]).any():  # never: the positions' LookupError
+            if "kf" in names and np.isnan(self.kf_t[slots]).any():  # never: its LookupError
                 for item in scored:
                     self._branch(item[0], "kf").position(item[1].t)
             xy = np.empty((len(scored), 4))

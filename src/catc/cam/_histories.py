@@ -20,6 +20,7 @@ import math
 
 import numpy as np
 
+from catc.compiled import compiled
 from catc.pathhistory import ConcisePathHistory
 
 __all__ = ["HistoryRow", "PathHistories"]
@@ -147,9 +148,9 @@ class PathHistories:
         if self._pending:
             self.flush()
         out = np.empty((len(slots), 3))
-        _trail_kernel()(np.array(slots, dtype=np.int64), np.ascontiguousarray(heads,
-                        dtype=np.float64), float(p[0]), float(p[1]), self.f, self.i,
-                        self.kept, out)
+        kernel = compiled(_trail_offsets)
+        kernel(np.array(slots, dtype=np.int64), np.ascontiguousarray(heads, dtype=np.float64),
+               float(p[0]), float(p[1]), self.f, self.i, self.kept, out)
         return out
 
 
@@ -182,19 +183,6 @@ def _kernels():
         _trim_length = njit(**opts)(_trim_length)
         _KERNEL = njit(**opts)(_add)
     return _KERNEL
-
-
-_TRAIL = None
-
-
-def _trail_kernel():
-    """:func:`_trail_offsets` compiled (numba, cached per machine), when first asked for."""
-    global _TRAIL
-    if _TRAIL is None:
-        from numba import njit
-
-        _TRAIL = njit(cache=True, error_model="numpy")(_trail_offsets)
-    return _TRAIL
 
 
 _RAD2DEG = 180.0 / math.pi  # math.degrees multiplies by this same constant

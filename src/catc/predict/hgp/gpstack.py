@@ -129,7 +129,7 @@ def _window_exps(tau: np.ndarray, steps: np.ndarray | None, coef: np.ndarray,
     under model s is ``tab[tw[b], pidx[b, q], s]``.  Windows on the 0.1 s grid of received
     BSMs (``steps``, from :func:`on_grid`) have only as many distinct d as DT steps in their
     span, so ``tab`` holds exp(c·(k·DT)² + log α1²) per step k (tens of exponentials per
-    model, not n(n+1)/2: a bank selection costs half as much) and ``pidx`` the steps;
+    model, not n(n+1)/2: bench/gp_kernels.py, selections × 0.71) and ``pidx`` the steps;
     other windows (``steps`` None) get every element's exponential (``pidx`` the
     identity).  One matrix product of [d², 1] with the rows, into work array ``name``."""
     bsz, n = tau.shape

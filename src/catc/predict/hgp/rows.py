@@ -8,10 +8,9 @@ import math
 
 from catc.predict.kalman import compiled_kf_step
 
-__all__ = ["apply", "kernel", "positions", "positions_kernel"]
+__all__ = ["apply", "kernel", "positions"]
 
 _KERNEL = None
-_POSITIONS = None
 
 
 def kernel():
@@ -27,16 +26,6 @@ def kernel():
 
 
 _KF_STEP = None
-
-
-def positions_kernel():
-    """:func:`positions` compiled (numba, cached per machine), when first asked for."""
-    global _POSITIONS
-    if _POSITIONS is None:
-        from numba import njit
-
-        _POSITIONS = njit(cache=True, error_model="numpy")(positions)
-    return _POSITIONS
 
 
 _DEG2RAD = math.pi / 180.0  # math.radians multiplies by this same constant

@@ -32,6 +32,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from catc.compiled import compiled
 from catc.predict.bank import KernelBank, default_bank
 from catc.predict.base import Observation, Prediction
 from catc.predict.forecast import (
@@ -47,7 +48,7 @@ from catc.predict.hgp.branches import Branches
 from catc.predict.hgp.config import HgpConfig
 from catc.predict.hgp.gpstack import forecast_grid, forecast_steps, posterior_stack
 from catc.predict.hgp.predictor import HgpPredictor
-from catc.predict.hgp.rows import kernel, positions_kernel
+from catc.predict.hgp.rows import kernel, positions
 from catc.predict.hgp.selection import (
     SELECT_CHUNK,
     bank_indices,
@@ -178,7 +179,7 @@ class HgpTable:
         self._kf = KalmanPredictor()  # the branches as the objects make them (KINEMATIC)
         self._ca = ConstantAccelerationPredictor()
         self._kernel = kernel()
-        self._positions = positions_kernel()
+        self._positions = compiled(positions)
         self._cap = 0
         self._free: list[int] = []
         self._dead: list[int] = []
@@ -294,7 +295,7 @@ class HgpTable:
             return
         if scored:
             self._score(scored)
-        kept = self.sel[keep]  # the selections that survive their gap (the kernel drops them)
+        kept = self.sel[keep] if keep else None  # the kernel drops these selections
         kf = self._kf
         self._kernel(np.array(slots, dtype=np.int64), np.array(rows, dtype=np.float64),
                      self.buf, self.lo, self.hi, self.turn, self.run, self.since, self.sel,

@@ -149,10 +149,8 @@ class Obu:
     def _verify_before_step(self) -> None:
         """Verify on demand: work the queue before the step, within its budget
         (:data:`PRE_TICK_MAX_S`, :data:`PRE_TICK_SPARE_S`): the frames it reaches are
-        trusted at this tick.  With ``--verify-workers`` the queue is the workers' alone
-        (their answers are settled first, :meth:`tick`): an ECDSA here would delay the
-        decision and take a core from them (measured: docs/log/2026-12-06-grid-and-fit.md)."""
-        if self.frames.worker is not None or not self.frames.queued():
+        trusted at this tick."""
+        if not self.frames.queued():
             return
         step_s = max(islice(reversed(self.status.step_ms), 20), default=0.0) / 1000.0
         spare = self.host_arrival + TICK_S - time.time() - step_s - PRE_TICK_SPARE_S

@@ -19,13 +19,11 @@ checked for misbehavior, counted, and an RV message queued for its tick.
   priority from the last snapshot.  An urgent one (a new RV, hard braking, in the path
   within the FCW's reach, in a side lane, an unverified track ahead) is verified at once
   (``ondemand_at_once``); the others are deferred (``ondemand_deferred``) into a
-  :class:`~catc.security.ondemand.VerifyQueue` that the ``--verify-workers`` processes
-  verify (without any, :meth:`Frames.work` in the OBU's idle time and before each tick:
-  with them, the main thread does only the ECDSA at once).  A deferred frame verified
-  before its tick is trusted there (``ondemand_deferred_ok``; one that fails is rejected
-  and never stepped); one its tick reaches unverified is stepped as such
-  (``ondemand_unverified_stepped``; the CAM flags its track and no application sees
-  it), and when it is verified later and
+  :class:`~catc.security.ondemand.VerifyQueue` that :meth:`Frames.work` verifies in the
+  OBU's idle time and before each tick.  A deferred frame verified before its tick is
+  trusted there (``ondemand_deferred_ok``; one that fails is rejected and never stepped);
+  one its tick reaches unverified is stepped as such (``ondemand_unverified_stepped``; the
+  CAM flags its track and no application sees it), and when it is verified later and
   fails (``ondemand_late_rejected``) its sender's track is dropped, unless it was a replay:
   a copy of what the sender said.  The queue drops the oldest low-threat frames under
   overload (``ondemand_skipped``); ``verify_ok`` and ``verify_<reason>`` count every

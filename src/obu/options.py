@@ -149,8 +149,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "(ondemand_skipped) (default 2000)")
     p.add_argument("--verify-workers", type=int, metavar="N",
                    help="verify on demand: processes (nice +10) that verify the queued "
-                        "frames; 0: none, the OBU's main thread does in its idle time and "
-                        "before each tick (default 1)")
+                        "frames beside the OBU's own idle time; 0: none (default 1)")
     p.add_argument("--shed-after", type=urgent_limit, metavar="S|off",
                    help="an OBU behind real time drops the frames that waited longer than S "
                         "s for it, undecoded (shed_rv, shed_host; a host frame dropped is a "

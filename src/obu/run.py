@@ -192,8 +192,7 @@ async def serve(args: argparse.Namespace) -> dict:
             if queue is not None:  # verify on demand: the workers' answers, and more work
                 obu.frames.pump()
             if not inbox and pending is None:
-                if queue is not None and len(queue) and obu.frames.worker is None:
-                    # verify on demand, no worker: the queue in idle time
+                if queue is not None and len(queue):  # verify on demand: idle time
                     obu.counters["ondemand_idle"] += obu.frames.work(
                         time.monotonic() + IDLE_SLICE_S, time.monotonic)
                     await asyncio.sleep(0)  # read the sockets between slices

@@ -9,8 +9,13 @@ written down by hand; one runs ``hgp``.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
+import os
 import random
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -544,3 +549,40 @@ def test_more_new_vehicles_than_the_tentative_table_are_all_confirmed_in_turns()
     c = snap.counters
     assert len(snap) == 1200 and m.tentative == 0
     assert c["tentative_evicted"] == 0 and c["tentative_full"] > 0 and _accounted(c)
+
+
+_AFTER_WARM_UP = r"""
+import gc, json, sys
+sys.path.insert(0, "bench")
+from numba.core.dispatcher import Dispatcher
+from catc.apps import SafetyApps
+from catc.cam import CamConfig, ContextAwareMap, warm_up
+import step
+
+def loaded():
+    return sum(len(d.overloads) for d in gc.get_objects() if isinstance(d, Dispatcher))
+
+warn = sys.argv[1] == "warm" and warm_up(CamConfig(predictor="hgp"), SafetyApps())
+before = loaded()
+cam = ContextAwareMap(CamConfig(predictor="hgp"), SafetyApps())
+for now, host, msgs in step.scene(60, 50):  # PER 50 %: gaps, short and full windows
+    cam.step(now, host, msgs)
+print(json.dumps({"warnings": warn, "before": before, "after": loaded()}))
+"""
+
+
+@pytest.mark.parametrize("warm", [True, False])
+def test_after_the_warm_up_a_tick_loads_no_compiled_kernel(warm):
+    """obu run warms its CA-TC up before its first tick (catc.cam.warm_up): a real scene
+    with losses then loads or compiles no numba kernel (without the warm-up it does,
+    which is what the check would miss were it blind)."""
+    root = Path(__file__).resolve().parents[1]
+    out = subprocess.run([sys.executable, "-c", _AFTER_WARM_UP, "warm" if warm else "cold"],
+                         cwd=root, capture_output=True, text=True, timeout=300, check=True,
+                         env={**os.environ, "PYTHONPATH": f"{root / 'src'}:{root}"})
+    r = json.loads(out.stdout.strip().splitlines()[-1])
+    if warm:
+        assert r["warnings"] > 0  # the braking leader: the apps ran in the warm-up
+        assert r["after"] == r["before"] > 0
+    else:
+        assert r["after"] > r["before"]

@@ -15,7 +15,7 @@ from typing import Any
 
 from catc.apps import SafetyApps
 from catc.bsm import BSM
-from catc.cam import CamConfig, ContextAwareMap, MapSnapshot, SecMarkClock
+from catc.cam import CamConfig, ContextAwareMap, MapSnapshot, SecMarkClock, warm_up
 from hil.capture import schema
 from hil.errors import write_error
 from obu.capture import ObuCapture, Received
@@ -40,10 +40,9 @@ class Obu:
         self.args = args
         config = CamConfig(predictor=args.predictor, max_tracks=args.max_tracks)
         self.cam = ContextAwareMap(config, SafetyApps())
-        if args.predictor == "hgp":  # its compiled kernels, before the first tick
-            from catc.predict.hgp import warm_up
-
-            warm_up()
+        # the compiled kernels and lazy imports of a tick, before the first one: at
+        # the start every RV is new and verified at once, no time for one-off costs
+        warm_up(config, SafetyApps())
         self.clock = SecMarkClock()
         self.gc: Any = None  # the GcPolicy, once serve() has started everything
         self.status = Status()

@@ -83,7 +83,7 @@ lateral offsets positive to the right.
 
 The package: ``_map.py`` the map and its step (steps 4-7), ``_tracks.py`` the tracks
 and their admission (steps 1-3), ``_snapshot.py`` what a step returns, ``_config.py``
-:class:`CamConfig`, ``_clock.py`` time from secMark.
+:class:`CamConfig`, ``_clock.py`` time from secMark, ``_warm.py`` a daemon's warm-up.
 """
 
 from catc.cam._clock import SecMarkClock, message_time
@@ -91,6 +91,7 @@ from catc.cam._config import CamConfig
 from catc.cam._map import ContextAwareMap
 from catc.cam._snapshot import HostEstimate, MapSnapshot, RvView, rows_of
 from catc.cam._tracks import COUNTERS, EVENT_HARD_BRAKING, HARD_BRAKING_DECEL, hard_braking
+from catc.cam._warm import warm_up
 
 __all__ = [
     "COUNTERS",
@@ -105,4 +106,5 @@ __all__ = [
     "hard_braking",
     "message_time",
     "rows_of",
+    "warm_up",
 ]

@@ -414,6 +414,13 @@ def test_chain_longer_than_allowed() -> None:
     checks = v.cert_checks
     assert v.verify(_chain_msg(r.key, [r.raw, broken_raw]), NOW).reason == "chain"
     assert v.cert_checks == checks + 1 and v.cache_size == 0
+    # the same forged certificate again: rejected without another ECDSA; a real one
+    # after it still verifies
+    assert v.verify(_chain_msg(r.key, [r.raw, broken_raw]), NOW).reason == "chain"
+    assert v.cert_checks == checks + 1
+    good = issue_certificate(pki.aa, start_time32=START, duration_s=WEEK, app_psids=(0x20,))
+    assert v.verify(_chain_msg(good.key, [good.raw, pki.aa.raw], gen=NOW + 1), NOW).ok
+    assert v.cert_checks == checks + 3  # the AA under the root, the pseudonym under the AA
     q = pki.pseudonyms[1]
     # certificates that do not chain (the second is not the issuer of the first), to a
     # verifier that does not know the AA in advance; one that knows it needs no more

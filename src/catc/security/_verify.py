@@ -164,6 +164,9 @@ class Verifier:
         self._roots: dict[bytes, _Trusted] = {}
         self._cache: OrderedDict[bytes, _Trusted] = OrderedDict()
         self._known: OrderedDict[bytes, Certificate] = OrderedDict()  # not yet verified
+        #: certificates whose signature did not verify (SHA-256 of their octets), so that
+        #: a sender repeating a forged one costs one ECDSA, not one per frame
+        self._forged: OrderedDict[bytes, None] = OrderedDict()
         for raw in roots:
             cert = _whole_certificate(raw)
             key = _public_key(cert)
@@ -212,11 +215,17 @@ class Verifier:
             cert.issue_all or not {*cert.app_psids, *cert.issue_psids} <= {*granted.issue_psids}
         ):
             return None  # the issuer may not grant these permissions
+        whole = sha256(cert.canonical)
+        if whole in self._forged:
+            return None
         self.cert_checks += 1
         digest = sha256(sha256(cert.tbs) + issuer.cert_hash)
         if not verify_digest(issuer.key, cert.signature, digest):
+            self._forged[whole] = None
+            while len(self._forged) > self.max_certs:
+                self._forged.popitem(last=False)
             return None
-        trusted = _Trusted(cert, key, sha256(cert.canonical), issuer.depth + 1,
+        trusted = _Trusted(cert, key, whole, issuer.depth + 1,
                            max(issuer.not_before, cert.start_time32),
                            min(issuer.not_after, cert.end_time32))
         self._cache[cert.hashed_id8] = trusted

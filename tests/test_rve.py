@@ -92,6 +92,9 @@ def test_udp_frames_received_match_the_schedule_exactly(tmp_path, per, burst, ra
     sent = [r for r in rv if not r["dropped"]]
     assert summary["sent"] == len(sent) and summary["dropped"] == len(rv) - len(sent)
     assert 0 < len(sent) < len(rv)
+    # how late the RV frames left, in the summary: the schedule's own largest lateness
+    assert summary["late_ms_max"] == pytest.approx(max(r["late_ms"] for r in sent), abs=1e-3)
+    assert summary["late_over_1s"] == sum(r["late_ms"] > 1000.0 for r in sent)
     # every frame that arrived is a scheduled, undropped message, and every one arrived
     got = sorted((f"{b.temp_id:08X}", b.msg_cnt, b.sec_mark)
                  for b in map(decode_frame, sink.frames[0]))
@@ -308,3 +311,15 @@ def test_a_bad_dataset_row_is_named(tmp_path):
         f"rve run: dataset {bad}: openacc: line 10: Time "
         f"{lines[9].split(',')[0]} after {lines[8].split(',')[0]} breaks the strictly "
         "increasing 10 Hz grid"]
+
+
+def test_frames_sent_over_a_second_late_are_counted():
+    """A replay that cannot keep its schedule says so (rve.end.json, the summary): the
+    latest RV frame's lateness and the frames over 1 s late; the host's do not count."""
+    from rve.run import _account
+
+    counts = {"sent": 0, "dropped": 0, "host": 0, "late_ms_max": 0.0, "late_over_1s": 0}
+    for host, late in ((False, 0.004), (False, 1.5), (True, 3.0), (False, 0.9)):
+        _account({"host": host}, b"x", (0.0, late), counts, None)
+    assert counts["late_ms_max"] == 1500.0 and counts["late_over_1s"] == 1
+    assert counts["sent"] == 3 and counts["host"] == 1

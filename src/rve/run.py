@@ -160,7 +160,7 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
         src.setdefault("rv", ("127.0.0.1", 0))
         src.setdefault("host", src["rv"])
         cap.sources(src)
-    counts = {"sent": 0, "dropped": 0, "host": 0}
+    counts = {"sent": 0, "dropped": 0, "host": 0, "late_ms_max": 0.0, "late_over_1s": 0}
     times = events["time"].tolist()
     hosts = events["host"].tolist()  # (a record's field costs ~0.3 us: 1,000 per burst)
     try:
@@ -259,6 +259,7 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
             try:  # every file flushed and closed, even after a failed write
                 cap.end(*ending, sent=counts["sent"], dropped=counts["dropped"],
                         host_frames=counts["host"],
+                        **{k: counts[k] for k in _LATE_COUNTS},
                         **(dict(hostbus.counts) if hostbus is not None else {}),
                         **{k: counts[k] for k in _SIGN_COUNTS if k in counts})
             except OSError:
@@ -270,6 +271,9 @@ async def replay(args: argparse.Namespace, the_plan: Plan,
     return counts
 
 
+#: how late the RV frames left (the largest, ms; how many over 1 s): a replay that cannot
+#: keep its schedule says so, as a verifying OBU rejects frames over 2 s old as stale
+_LATE_COUNTS = ("late_ms_max", "late_over_1s")
 #: the signing counters of the summary and rve.end.json (rve.signing, rve.signahead)
 _SIGN_COUNTS = ("signed", "with_certificate", "sign_ahead_batches", "sign_ahead_waits",
                 "sign_ahead_wait_ms_max")
@@ -287,15 +291,20 @@ async def _send_burst(sender: Any, frames: list[bytes | None], burst: list[int],
 
 
 def _account(ev: Any, frame: bytes | None, when: tuple[float, float] | None,
-             counts: dict[str, int], lateness: list[float] | None) -> None:
+             counts: dict[str, float], lateness: list[float] | None) -> None:
     """The counters and lateness of one event after its batch was sent."""
     host = bool(ev["host"])
     if frame is None:
         counts["dropped"] += 1
     else:
         counts["host" if host else "sent"] += 1
-        if lateness is not None and not host:
-            lateness.append(when[1])
+        if not host:
+            late = when[1]
+            if late * 1000.0 > counts["late_ms_max"]:
+                counts["late_ms_max"] = round(late * 1000.0, 3)
+            counts["late_over_1s"] += late > 1.0
+            if lateness is not None:
+                lateness.append(late)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -334,10 +343,15 @@ def run(args: argparse.Namespace) -> int:
     except TransportError as err:
         print(f"rve run: {err}", file=sys.stderr)
         return 2
+    if counts["late_over_1s"]:
+        print(f"rve run: {counts['late_over_1s']} RV frames left more than 1 s after their "
+              f"deadline (the latest {counts['late_ms_max'] / 1000.0:.1f} s): this machine "
+              "did not keep the schedule, and a verifying OBU rejects frames over 2 s old "
+              "as stale", file=sys.stderr)
     print(json.dumps({"sent": counts["sent"], "dropped": counts["dropped"],
                       "host_frames": counts["host"], "interrupted": bool(counts["interrupted"]),
                       "vehicles": len(the_plan.vehicles) - 1, "host": the_plan.host_id,
-                      **{k: counts[k] for k in (*_SIGN_COUNTS,
+                      **{k: counts[k] for k in (*_LATE_COUNTS, *_SIGN_COUNTS,
                                                  "attack_frames", "host_can_frames",
                                                  "host_can_errors", "nmea_epochs",
                                                  "gnss_dropped", "nmea_full")

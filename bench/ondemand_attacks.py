@@ -21,7 +21,11 @@ must).  The verdict: under on demand the attacks raise no more warnings than und
 verification, and no warning rests on an unverified message.  With ``--attack`` the RVE
 signs in its sending loop (:mod:`rve.signahead` does not sign attacks ahead), so at 1,000
 RVs it runs behind real time; the OBU's clock is the host's, so the scene is the same, only
-slower.  ~1 min per run; two configurations of seven runs each (six attacks and a twin).
+slower.  The clean twin signs in the loop too (:func:`captures.live.attack_checks`):
+signed ahead, it fell over 2 s behind at 1,000 RVs, the OBU rejected half its frames as
+stale, and the twin lost the braking lead's FCW, which made the replay attack look as if
+it added warnings (6/0 before 2026-12-06's fifth session).  ~1 min per run; two
+configurations of seven runs each (six attacks and a twin).
 
     python bench/ondemand_attacks.py [--json] [--dense 1000] [--full 100] [--duration 30]
                                      [--attack KIND[:KEY=VALUE,...]]...

@@ -206,9 +206,14 @@ def attack_checks(spec: str, table: MobilityTable, predictor: str, attacks: list
     twins: dict[tuple[float, str], Path] = {}
 
     def daemons(cap: Path, per: float, defence: str, *attack: str) -> None:
+        # the clean twin signs in the sending loop, as an attacked run must (rve.signahead
+        # does not sign attacks ahead): signed ahead, a twin that falls behind sends its
+        # frames with their scheduled generationTime, and a verifying OBU rejects those
+        # over 2 s late as stale (1,000 RVs beside the OBU on 2 cores); signed inline,
+        # both runs slow down alike and stay comparable
         run_daemons(cap, ["--dataset", spec, "--trip", table.name, "--per", f"{per:g}",
                           "--seed", str(seed), "--speed", f"{speed:g}", "--sign",
-                          str(root / "pki"), *attack,
+                          str(root / "pki"), "--sign-workers", "0", *attack,
                           *([] if duration is None else ["--duration", f"{duration:g}"])],
                     ["--predictor", predictor, "--trust", str(root / "pki"),
                      *DEFENCES[defence]])

@@ -14,6 +14,16 @@ why the rounds alternate, and why a ratio within a few per cent of 1 is noise.
     python bench/ab.py --a 43bc16c --b HEAD --fields tick_ms_p50,tick_ms_p99,obu_cpu_pct \\
         -- obu_load.py --rvs 500 --per 50 --predictors hgp --seconds 10
 
+When the old code lacks a flag, or the two are to run in different modes, ``--a-args`` and
+``--b-args`` append to one side's command line only, and ``--key`` names the rows without
+the field that differs (the issue's baseline, verifying everything, against today's
+verify on demand, with the RVE signing the whole run before its clock starts):
+
+    python bench/ab.py --a 43bc16c --rounds 1 --key rvs,per,predictor \
+        --fields tick_ms_p99,deadline_misses --a-args "--verify on" \
+        --b-args "--verify on-demand --sign-lookahead 16" \
+        -- obu_load.py --rvs 500,1000 --per 0 --predictors hgp --seconds 15
+
 The bench's JSON is a list of rows or an object with ``rows``; a row is named by its
 ``--key`` fields (default: those of rvs, per, predictor, verify, web_clients it has).
 ``--json`` prints the result as JSON instead of a table.
@@ -24,6 +34,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import statistics
 import subprocess
 import sys
@@ -53,8 +64,10 @@ def _run(tree: Path, argv: list[str]) -> list[dict]:
 
 
 def compare(a: str, b: str, argv: list[str], fields: list[str], rounds: int,
-            keys: list[str]) -> list[dict]:
-    """Each row's fields: the medians over ``rounds`` alternating runs of A and B."""
+            keys: list[str], extra: dict[str, list[str]] | None = None) -> list[dict]:
+    """Each row's fields: the medians over ``rounds`` alternating runs of A and B
+    (``extra``: arguments appended for one side, by ``a`` or ``b``)."""
+    extra = extra or {}
     with tempfile.TemporaryDirectory(prefix="catc-ab-") as tmp:
         trees = {}
         for label, rev in (("a", a), ("b", b)):
@@ -65,7 +78,7 @@ def compare(a: str, b: str, argv: list[str], fields: list[str], rounds: int,
             values: dict[tuple, dict[str, dict[str, list[float]]]] = {}
             runs = [(r, label) for r in range(rounds + 1) for label in ("a", "b")]
             for r, label in tqdm(runs, desc="ab", unit="run", file=sys.stderr):
-                rows = _run(trees[label], argv)
+                rows = _run(trees[label], argv + extra.get(label, []))
                 if r == 0:
                     continue  # warm-up round
                 for row in rows:
@@ -80,10 +93,12 @@ def compare(a: str, b: str, argv: list[str], fields: list[str], rounds: int,
     out = []
     for name, by_field in values.items():
         for f, v in by_field.items():
-            ma, mb = statistics.median(v["a"]), statistics.median(v["b"])
+            # a field only one side's bench reports (an old one lacks it): its median
+            ma = statistics.median(v["a"]) if v["a"] else None
+            mb = statistics.median(v["b"]) if v["b"] else None
             out.append({"row": dict(name), "field": f, "a": v["a"], "b": v["b"],
                         "a_median": ma, "b_median": mb,
-                        "ratio": round(mb / ma, 3) if ma else None})
+                        "ratio": round(mb / ma, 3) if ma and mb is not None else None})
     return out
 
 
@@ -101,6 +116,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fields", required=True, help="comma-separated numeric fields")
     ap.add_argument("--key", default="rvs,per,predictor,verify,web_clients",
                     help="the fields that name a row (default %(default)s)")
+    ap.add_argument("--a-args", default="", metavar="ARGS",
+                    help="appended to A's command line only (one string, split as a shell does)")
+    ap.add_argument("--b-args", default="", metavar="ARGS",
+                    help="appended to B's command line only")
     ap.add_argument("--json", action="store_true", help="print JSON instead of a table")
     args = ap.parse_args(argv[:cut])
     bench = argv[cut + 1:]
@@ -109,21 +128,24 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         result = compare(args.a, args.b, bench, args.fields.split(","), args.rounds,
-                         args.key.split(","))
+                         args.key.split(","), {"a": shlex.split(args.a_args),
+                                               "b": shlex.split(args.b_args)})
     except (RuntimeError, subprocess.CalledProcessError) as err:
         print(f"ab: {err}", file=sys.stderr)
         return 1
     if args.json:
         print(json.dumps({"a": args.a, "b": args.b, "bench": bench, "rounds": args.rounds,
+                          "a_args": args.a_args, "b_args": args.b_args,
                           "results": result}, indent=1))
         return 0
-    print(f"{' '.join(bench)}: A = {args.a}, B = {args.b}, median of {args.rounds} "
-          "alternating runs each")
+    print(f"{' '.join(bench)}: A = {args.a} {args.a_args}, B = {args.b} {args.b_args}, "
+          f"median of {args.rounds} alternating runs each")
     print(f"{'row':<44} {'field':<18} {'A':>10} {'B':>10} {'B/A':>6}")
     for r in result:
         name = ", ".join(f"{k} {v}" for k, v in r["row"].items())
-        print(f"{name[:44]:<44} {r['field']:<18} {r['a_median']:>10.3f} "
-              f"{r['b_median']:>10.3f} {r['ratio'] if r['ratio'] is not None else '-':>6}")
+        a, b = (f"{m:.3f}" if m is not None else "-" for m in (r["a_median"], r["b_median"]))
+        print(f"{name[:44]:<44} {r['field']:<18} {a:>10} {b:>10} "
+              f"{r['ratio'] if r['ratio'] is not None else '-':>6}")
     return 0
 
 

@@ -105,8 +105,7 @@ from catc.predict.hgp.reference import (
     lml_with_slope,
     posterior_with_slope,
 )
-from catc.predict.hgp.table import warm_up
 
 __all__ = ["HgpConfig", "HgpDirectConfig", "HgpDirectPredictor", "HgpPredictor",
            "RegularSlopeBank", "RegularSlopePosterior", "forecast_many", "forecast_many_at",
-           "forecast_path", "integrate", "lml_with_slope", "posterior_with_slope", "warm_up"]
+           "forecast_path", "integrate", "lml_with_slope", "posterior_with_slope"]

@@ -66,7 +66,7 @@ from catc.predict.kinematic import (
     elapsed,
 )
 
-__all__ = ["HgpRow", "HgpTable", "supported", "warm_up"]
+__all__ = ["HgpRow", "HgpTable", "supported"]
 
 #: Columns of the rows' last observation (:class:`Observation`'s fields).
 _T, _X, _Y, _SPEED, _HEADING, _ACCEL, _YAW = range(7)
@@ -579,20 +579,3 @@ def _elapsed_many(last_t: np.ndarray, t: float) -> np.ndarray:
         dt = np.where(early, 0.0, dt)
     return dt
 
-
-def warm_up() -> None:
-    """Load (or, on a machine's first run, compile) the compiled kernels now, with one
-    forecast of a window with losses by an :class:`HgpPredictor` and by an
-    :class:`HgpTable`: a daemon calls this before its first tick, which would otherwise
-    take ~0.3 s longer (several seconds on a cold compile cache)."""
-    p = HgpPredictor()
-    table = HgpTable(capacity=1)
-    row = table.row()
-    for k in range(12):
-        if k % 3:
-            obs = Observation(0.1 * k, 0.0, 2.0 * k, 20.0, 0.0, 0.0, 0.0)
-            p.update(obs)
-            row.update(obs)
-    p.predict(2.0)
-    table.prepare([row], 2.0)
-    table.columns([row], 1.2, 2.0)

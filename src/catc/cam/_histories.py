@@ -69,8 +69,6 @@ class PathHistories:
         self._pending: list[tuple[HistoryRow, float, float, float]] = []
         self._cache: dict[int, tuple] = {}
         self._grow(capacity)
-        # loaded (or compiled) now, not at the first tick with a trail ahead
-        self.trail_offsets([], np.empty((0, 2)), (0.0, 0.0))
 
     def _grow(self, capacity: int) -> None:
         old, n = self._cap, max(capacity, 2 * self._cap)

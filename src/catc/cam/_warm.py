@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 from catc.bsm import BSM
 from catc.cam._config import CamConfig
+from catc.geo import EnuFrame
 
 __all__ = ["warm_up"]
 
@@ -16,19 +16,7 @@ _RVS = ((0.0, 30.0, 22.0, False), (0.0, 60.0, 24.0, False), (3.6, 10.0, 25.0, Fa
         (10.8, -90.0, 23.0, True), (0.0, -40.0, 25.0, False))
 _TICKS = 45
 _DT = 0.1
-#: metres per degree of latitude (the scene needs no geodesy, only plausible motion)
-_M_PER_DEG = 111_320.0
-_ORIGIN = (46.89, 16.84)
-
-
-def _bsm(temp_id: int, k: int, x: float, y: float, speed: float, heading: float,
-         accel: float) -> BSM:
-    lat0, lon0 = _ORIGIN
-    lat = lat0 + y / _M_PER_DEG
-    lon = lon0 + x / (_M_PER_DEG * math.cos(math.radians(lat0)))
-    return BSM(msg_cnt=k % 128, temp_id=temp_id, sec_mark=round(k * _DT * 1000.0) % 60_000,
-               lat=lat, lon=lon, speed=speed, heading=heading, accel_long=accel,
-               yaw_rate=0.0, length=4.8, width=1.9)
+_FRAME = EnuFrame(46.89, 16.84, 0.0)
 
 
 def warm_up(config: CamConfig | None = None, apps: Any = None) -> int:
@@ -48,8 +36,8 @@ def warm_up(config: CamConfig | None = None, apps: Any = None) -> int:
     warnings = 0
     for k in range(_TICKS):
         t = k * _DT
-        host = _bsm(0x7FFF_FFFF, k, 0.0, 25.0 * t, 25.0, 0.0, 0.0)
-        messages = []
+        # (temp id, x, y, speed, heading, accel): the HV first, then the RVs heard
+        states = [(0x7FFF_FFFF, 0.0, 25.0 * t, 25.0, 0.0, 0.0)]
         for i, (x, s0, v, oncoming) in enumerate(_RVS):
             # lost in runs of up to three (none in the first three ticks: every RV
             # gets its track)
@@ -58,9 +46,14 @@ def warm_up(config: CamConfig | None = None, apps: Any = None) -> int:
             braking = i == 0 and t > 2.0
             speed = max(v - 6.0 * (t - 2.0), 4.0) if braking else v
             along = (v * t - 3.0 * (t - 2.0) ** 2) if braking else v * t
-            y = s0 - along if oncoming else s0 + along
-            messages.append(_bsm(0x1000 + 977 * i, k, x, y, speed,
-                                 180.0 if oncoming else 0.0, -6.0 if braking else 0.0))
+            states.append((0x1000 + 977 * i, x, s0 - along if oncoming else s0 + along,
+                           speed, 180.0 if oncoming else 0.0, -6.0 if braking else 0.0))
+        lat, lon, _ = _FRAME.to_geodetic([s[1] for s in states], [s[2] for s in states])
+        host, *messages = [
+            BSM(msg_cnt=k % 128, temp_id=tid, sec_mark=round(t * 1000.0) % 60_000,
+                lat=float(la), lon=float(lo), speed=v, heading=h, accel_long=a,
+                yaw_rate=0.0, length=4.8, width=1.9)
+            for (tid, _, _, v, h, a), la, lo in zip(states, lat, lon, strict=True)]
         # the last RV's messages of every other tick unverified (verify on demand)
         unverified = frozenset(id(m) for m in messages[-1:] if k % 2)
         warnings += len(cam.step(t, host, messages, unverified).warnings)
